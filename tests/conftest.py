@@ -1,0 +1,27 @@
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = (ROOT / ".." / "shared" / "data").resolve()
+SAMPLE = ROOT / "samples" / "gallery"
+
+os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1")
+torch.set_num_threads(min(2, os.cpu_count() or 1))
+
+
+def shared(*parts: str) -> Path:
+    """Path under ../shared/data, or skip the test (never download)."""
+    p = SHARED.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"external data not present: {p}")
+    return p
+
+
+@pytest.fixture
+def sample_scene_path() -> Path:
+    if not (SAMPLE / "transforms_train.json").is_file():
+        pytest.skip("bundled sample not rendered yet (samples/gallery)")
+    return SAMPLE

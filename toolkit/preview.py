@@ -1,0 +1,93 @@
+"""Quick-look images: contact sheets of scenes, colour maps for labels, normals and scalar maps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .io import linear_to_srgb, write_png
+from .scene import SEMANTIC_CLASSES, UNLABELLED, Scene
+
+__all__ = ["LABEL_COLOURS", "colourise_labels", "colourise_normals", "colourise_scalar", "contact_sheet", "tile"]
+
+LABEL_COLOURS = np.array([
+    [0.90, 0.30, 0.25],  # painting
+    [0.95, 0.75, 0.20],  # frame
+    [0.35, 0.80, 0.95],  # display
+    [0.55, 0.45, 0.80],  # base
+    [0.80, 0.80, 0.75],  # wall
+    [0.45, 0.70, 0.35],  # floor
+    [0.95, 0.45, 0.80],  # other
+], dtype=np.float32)
+"""RGB in [0, 1] per class of :data:`toolkit.scene.SEMANTIC_CLASSES`; unlabelled pixels are black."""
+if len(LABEL_COLOURS) != len(SEMANTIC_CLASSES):  # keep the palette in step with the class list
+    raise ImportError("LABEL_COLOURS must have one colour per semantic class")
+
+
+def colourise_labels(labels: torch.Tensor | np.ndarray) -> np.ndarray:
+    """int [H, W] class ids -> float H-W-3 colours (255 = black)."""
+    lab = np.asarray(labels.cpu() if isinstance(labels, torch.Tensor) else labels).astype(np.int64)
+    out = np.zeros(lab.shape + (3,), np.float32)
+    ok = (lab >= 0) & (lab < len(LABEL_COLOURS)) & (lab != UNLABELLED)
+    out[ok] = LABEL_COLOURS[lab[ok]]
+    return out
+
+
+def colourise_normals(normals_chw: torch.Tensor | np.ndarray) -> np.ndarray:
+    """float [3, H, W] unit normals -> H-W-3 image (n+1)/2; zero vectors stay black."""
+    n = np.asarray(normals_chw.cpu() if isinstance(normals_chw, torch.Tensor) else normals_chw).transpose(1, 2, 0)
+    valid = np.abs(n).sum(-1, keepdims=True) > 0
+    return np.where(valid, (n + 1) * 0.5, 0.0).astype(np.float32)
+
+
+def colourise_scalar(x: torch.Tensor | np.ndarray, lo: float | None = None, hi: float | None = None,
+                     cmap: str = "turbo") -> np.ndarray:
+    """float [H, W] -> H-W-3 image through a matplotlib colour map (range [lo, hi], default min..max)."""
+    import matplotlib
+
+    a = np.asarray(x.detach().cpu() if isinstance(x, torch.Tensor) else x, dtype=np.float32)
+    lo = float(np.nanmin(a)) if lo is None else lo
+    hi = float(np.nanmax(a)) if hi is None else hi
+    t = np.clip((a - lo) / max(hi - lo, 1e-12), 0, 1)
+    return matplotlib.colormaps[cmap](t)[..., :3].astype(np.float32)
+
+
+def tile(rows: list[list[np.ndarray]], pad: int = 2) -> np.ndarray:
+    """Grid of equally sized H-W-3 float images with ``pad`` px white gutters."""
+    h, w = rows[0][0].shape[:2]
+    ncol = max(len(r) for r in rows)
+    out = np.ones((len(rows) * (h + pad) + pad, ncol * (w + pad) + pad, 3), np.float32)
+    for i, r in enumerate(rows):
+        for j, img in enumerate(r):
+            y, x = pad + i * (h + pad), pad + j * (w + pad)
+            out[y:y + h, x:x + w] = img[..., :3] if img.ndim == 3 else img[..., None]
+    return out
+
+
+def contact_sheet(scene: Scene, out: Path, n: int = 6) -> Path:
+    """Write a PNG grid: one row per view (evenly spread), columns image | labels | albedo | normals | depth.
+
+    Columns whose map the scene lacks are left out.
+    """
+    idx = np.linspace(0, len(scene) - 1, min(n, len(scene))).round().astype(int)
+    extras = scene.extras_available()
+    rows = []
+    for i in idx:
+        row = [scene.load_image(int(i)).numpy().transpose(1, 2, 0)]
+        if "semantic" in extras:
+            row.append(colourise_labels(scene.load_extra(int(i), "semantic")))
+        if "albedo" in extras:
+            row.append(linear_to_srgb(scene.load_extra(int(i), "albedo").numpy().transpose(1, 2, 0)))
+        if "normal" in extras:
+            row.append(colourise_normals(scene.load_extra(int(i), "normal")))
+        if "depth" in extras:
+            d = scene.load_extra(int(i), "depth").numpy()
+            valid = d > 0
+            img = colourise_scalar(np.where(valid, d, np.nan), float(d[valid].min()) if valid.any() else 0,
+                                   float(d[valid].max()) if valid.any() else 1, "viridis")
+            row.append(np.where(valid[..., None], img, 0.0))
+        rows.append(row)
+    write_png(out, tile(rows))
+    return out

@@ -1,0 +1,967 @@
+"""Stage 1 — load posed images into a :class:`Scene`; cameras, projection and rays.
+
+Supported inputs (``load_scene(path, split=...)``):
+
+* a directory with ``transforms_{train,val,test}.json`` (NeRF "Blender" / nerfstudio / instant-ngp layout);
+* a directory with one ``transforms.json`` (split: every ``test_every``-th frame, default 8, is ``test``; the
+  rest is ``train``; ``val`` is the same as ``test``);
+* a single transforms JSON file (all its frames form the split ``all``; ``train``/``test`` split it as above);
+* a COLMAP text model: a directory holding ``cameras.txt`` and ``images.txt`` (at its root or under
+  ``sparse/0/`` or ``sparse/``) and the photos under ``images/``;
+* a tiny-NeRF ``.npz`` (keys ``images``, ``poses``, ``focal``): the first 100 frames are ``train``, the rest
+  ``test`` (the classic tiny-NeRF convention; ``n_train`` overrides).
+
+Conventions (SPEC): camera-to-world 4x4 in OpenGL convention (x right, y up, camera looks down −z);
+world up +z. Pixel ``(u, v)`` = (column, row) has its centre at ``(u + 0.5, v + 0.5)`` in the pixel
+coordinates that ``cx, cy`` use, so the camera-space ray through it is
+``((u + 0.5 − cx) / fx, −(v + 0.5 − cy) / fy, −1)``. Images are float in [0, 1] as stored (sRGB for
+PNG/JPEG photos; :attr:`Scene.srgb` says so). Images are decoded lazily, one file at a time: memory is what
+the caller asks for (:meth:`Scene.load_image`, :meth:`Scene.load_images`), never the whole data set.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Iterable, Literal, Sequence
+
+import numpy as np
+import torch
+
+from ._checks import SceneError, check_rigid_pose, check_shape
+from .io import read_image, read_map
+
+__all__ = [
+    "Cameras",
+    "Frame",
+    "Scene",
+    "RayBundle",
+    "SEMANTIC_CLASSES",
+    "UNLABELLED",
+    "EXTRA_KEYS",
+    "load_scene",
+    "list_splits",
+    "generate_rays",
+    "project_points",
+    "intersect_aabb",
+]
+
+SEMANTIC_CLASSES: tuple[str, ...] = ("painting", "frame", "display", "base", "wall", "floor", "other")
+"""The 7 SPEC classes; a label image stores the index (0-6), 255 = unlabelled/background."""
+UNLABELLED = 255
+
+EXTRA_KEYS: dict[str, str] = {
+    "mask": "mask_path",
+    "depth": "depth_file_path",
+    "semantic": "semantic_path",
+    "normal": "normal_path",
+    "albedo": "albedo_path",
+    "roughness": "roughness_path",
+    "metallic": "metallic_path",
+    "metal": "metal_path",
+    "radiance": "radiance_path",
+}
+"""Per-frame optional maps: name -> transforms-JSON key (paths relative to the JSON).
+
+Units and spaces: ``depth`` metres along the camera axis (−z_cam; 16-bit PNG values times the scene's
+``depth_unit_scale_factor``, default 0.001, or ``.npy`` in metres; 0 = no hit); ``normal`` world-space unit
+normals (PNG encodes (n+1)/2); ``albedo`` linear base colour; ``roughness``/``metallic`` in [0, 1];
+``semantic`` uint8 class ids (:data:`SEMANTIC_CLASSES`, 255 unlabelled); ``metal`` the metal-subclass
+annotation mask (non-zero = metal); ``mask`` foreground mask (non-zero = keep); ``radiance`` linear
+radiance (``.hdr``/``.exr``/``.npy``)."""
+
+_RADIAL_CV_MODELS = {"SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"}
+_FISHEYE_MODELS = {"SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE", "FOV", "THIN_PRISM_FISHEYE"}
+
+Split = Literal["train", "val", "test", "all"]
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """A batch of pinhole cameras (after any undistortion and downscaling).
+
+    Attributes:
+        c2w: float [N, 4, 4] camera-to-world, OpenGL convention, metres.
+        fx, fy: float [N] focal lengths in pixels.
+        cx, cy: float [N] principal point in pixels (pixel centres at +0.5).
+        width, height: int [N] image size in pixels.
+    """
+
+    c2w: torch.Tensor
+    fx: torch.Tensor
+    fy: torch.Tensor
+    cx: torch.Tensor
+    cy: torch.Tensor
+    width: torch.Tensor
+    height: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.c2w.shape[0])
+
+    def __getitem__(self, idx) -> "Cameras":
+        if isinstance(idx, int):
+            idx = [idx]
+        return Cameras(*(getattr(self, f)[idx] for f in ("c2w", "fx", "fy", "cx", "cy", "width", "height")))
+
+    def to(self, device: torch.device | str) -> "Cameras":
+        return Cameras(*(getattr(self, f).to(device) for f in ("c2w", "fx", "fy", "cx", "cy", "width", "height")))
+
+    @property
+    def device(self) -> torch.device:
+        return self.c2w.device
+
+    @property
+    def origins(self) -> torch.Tensor:
+        """float [N, 3] camera centres in world space."""
+        return self.c2w[:, :3, 3]
+
+    def intrinsics(self) -> torch.Tensor:
+        """float [N, 3, 3] intrinsic matrices K (pixel-centre convention of the module docstring)."""
+        K = torch.zeros(len(self), 3, 3, dtype=self.fx.dtype, device=self.fx.device)
+        K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = self.fx, self.fy, self.cx, self.cy, 1.0
+        return K
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One image record: where its files are, never their pixels.
+
+    Attributes:
+        name: the frame's name in the source (``file_path`` as written, or the COLMAP image name).
+        image_path: resolved path of the photo (``None`` when pixels come from an in-memory array).
+        extras: optional per-frame maps, name -> resolved path (keys of :data:`EXTRA_KEYS`).
+        distortion: OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]) applied by undistortion on load,
+            or ``None`` for a pure pinhole image.
+        native_size: (width, height) of the stored image before downscaling.
+    """
+
+    name: str
+    image_path: Path | None
+    extras: dict[str, Path] = field(default_factory=dict)
+    distortion: tuple[float, ...] | None = None
+    native_size: tuple[int, int] | None = None
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Posed images of one split, loaded lazily.
+
+    Attributes:
+        source: the file or directory the scene was loaded from.
+        split: ``"train"``, ``"val"``, ``"test"`` or ``"all"``.
+        cameras: :class:`Cameras` of the split (intrinsics already scaled by ``downscale``).
+        frames: one :class:`Frame` per camera.
+        aabb: float [2, 3] scene bounds (min, max) in metres.
+        near, far: scalar ray bounds from the file (``None``: rays are clipped to ``aabb``).
+        sh: float [9, 3] ground-truth environment SH (SPEC convention) or ``None``.
+        envmap_path: ground-truth environment map (lat-long, SPEC convention) or ``None``.
+        background: RGB in [0, 1] that RGBA images are composited onto.
+        downscale: integer factor images are reduced by on load.
+        srgb: whether stored images are sRGB-encoded (PNG/JPEG photos) rather than linear.
+        depth_unit_scale_factor: PNG depth value x factor = metres.
+        meta: other top-level values of the source file (e.g. ``render``, ``scene`` blocks).
+    """
+
+    source: Path
+    split: str
+    cameras: Cameras
+    frames: tuple[Frame, ...]
+    aabb: torch.Tensor
+    near: float | None = None
+    far: float | None = None
+    sh: torch.Tensor | None = None
+    envmap_path: Path | None = None
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    downscale: int = 1
+    srgb: bool = True
+    depth_unit_scale_factor: float = 0.001
+    meta: dict = field(default_factory=dict)
+    _array_images: np.ndarray | None = field(default=None, repr=False)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(height, width) of the first image (all images share it unless intrinsics are per frame)."""
+        return int(self.cameras.height[0]), int(self.cameras.width[0])
+
+    def extras_available(self) -> list[str]:
+        """Names of per-frame maps present for every frame of the split."""
+        if not self.frames:
+            return []
+        return [k for k in EXTRA_KEYS if all(k in f.extras for f in self.frames)]
+
+    def has_extra(self, name: str) -> bool:
+        return name in self.extras_available()
+
+    def subset(self, indices: Sequence[int]) -> "Scene":
+        """The same scene restricted to some frames (still lazy)."""
+        idx = list(indices)
+        arr = None if self._array_images is None else self._array_images[idx]
+        return replace(self, cameras=self.cameras[idx], frames=tuple(self.frames[i] for i in idx), _array_images=arr)
+
+    # ------------------------------------------------------------------ pixels
+    def _where(self, i: int) -> str:
+        f = self.frames[i]
+        return f"{self.source} frame {i} ('{f.name}')"
+
+    def _expected_hw(self, i: int) -> tuple[int, int]:
+        return int(self.cameras.height[i]), int(self.cameras.width[i])
+
+    def _postprocess(self, i: int, img: np.ndarray, what: str, interp: str) -> np.ndarray:
+        """Undistort, downscale and size-check one decoded H-W-C map of frame ``i``."""
+        import cv2
+
+        f = self.frames[i]
+        if f.native_size is not None:
+            nw, nh = f.native_size
+            if img.shape[1] != nw or img.shape[0] != nh:
+                raise SceneError(
+                    f"{self._where(i)}: {what} is {img.shape[1]}x{img.shape[0]} but the camera intrinsics say "
+                    f"{nw}x{nh}; fix w/h in the transforms file or resize the image"
+                )
+        if f.distortion is not None and any(abs(c) > 0 for c in f.distortion):
+            K = np.array(
+                [[float(self.cameras.fx[i]) * self.downscale, 0, float(self.cameras.cx[i]) * self.downscale],
+                 [0, float(self.cameras.fy[i]) * self.downscale, float(self.cameras.cy[i]) * self.downscale],
+                 [0, 0, 1]], dtype=np.float64)
+            # The principal point of K is in pixel-centre-at-0.5 coordinates; OpenCV's is at 0: shift by 0.5.
+            K_cv = K.copy()
+            K_cv[0, 2] -= 0.5
+            K_cv[1, 2] -= 0.5
+            flag = cv2.INTER_NEAREST if interp == "nearest" else cv2.INTER_LINEAR
+            map1, map2 = cv2.initUndistortRectifyMap(K_cv, np.array(f.distortion, np.float64), None, K_cv,
+                                                     (img.shape[1], img.shape[0]), cv2.CV_32FC1)
+            squeeze = img.ndim == 3 and img.shape[2] == 1
+            img = cv2.remap(img, map1, map2, flag, borderMode=cv2.BORDER_CONSTANT)
+            if squeeze and img.ndim == 2:
+                img = img[..., None]
+        if self.downscale > 1:
+            h, w = self._expected_hw(i)
+            squeeze = img.ndim == 3 and img.shape[2] == 1
+            flag = cv2.INTER_NEAREST if interp == "nearest" else cv2.INTER_AREA
+            img = cv2.resize(img, (w, h), interpolation=flag)
+            if squeeze or img.ndim == 2:
+                img = img.reshape(h, w, -1)
+        h, w = self._expected_hw(i)
+        if img.shape[0] != h or img.shape[1] != w:
+            raise SceneError(
+                f"{self._where(i)}: {what} is {img.shape[1]}x{img.shape[0]} but the camera says {w}x{h}; "
+                "all maps of a frame must match its image size"
+            )
+        return img
+
+    def load_image(self, i: int, with_alpha: bool = False) -> torch.Tensor:
+        """Decode image ``i`` to float [3, H, W] in [0, 1] (RGBA is composited onto :attr:`background`).
+
+        Args:
+            i: frame index within the split.
+            with_alpha: return float [4, H, W] with the alpha channel (1 where the file has none) instead.
+
+        Raises:
+            SceneError: missing/corrupt file or a size that disagrees with the intrinsics (names the file).
+        """
+        if not 0 <= i < len(self):
+            raise IndexError(f"frame index {i} out of range for split '{self.split}' with {len(self)} frames")
+        if self._array_images is not None:
+            img = np.asarray(self._array_images[i], dtype=np.float32)
+            if img.ndim == 2:
+                img = img[..., None].repeat(3, -1)
+        else:
+            img = read_image(self.frames[i].image_path, what=f"image of {self._where(i)}")
+        if img.shape[2] == 1:
+            img = np.repeat(img, 3, axis=2)
+        img = self._postprocess(i, img, "image", "area")
+        rgb = img[..., :3]
+        alpha = img[..., 3:4] if img.shape[2] >= 4 else np.ones_like(img[..., :1])
+        if img.shape[2] >= 4:
+            rgb = rgb * alpha + np.asarray(self.background, np.float32) * (1.0 - alpha)
+        out = np.concatenate([rgb, alpha], -1) if with_alpha else rgb
+        return torch.from_numpy(np.ascontiguousarray(out.transpose(2, 0, 1))).float()
+
+    def load_images(self, indices: Iterable[int] | None = None, with_alpha: bool = False) -> torch.Tensor:
+        """Decode several images to float [B, 3, H, W] (or [B, 4, H, W]); all must share one size."""
+        idx = list(range(len(self))) if indices is None else list(indices)
+        imgs = [self.load_image(i, with_alpha) for i in idx]
+        sizes = {tuple(x.shape) for x in imgs}
+        if len(sizes) > 1:
+            raise SceneError(f"{self.source}: images of split '{self.split}' differ in size {sorted(sizes)}; "
+                             "load them one at a time with load_image")
+        return torch.stack(imgs) if imgs else torch.zeros(0, 3 + with_alpha, *self.image_size)
+
+    def load_extra(self, i: int, name: str) -> torch.Tensor:
+        """Decode a per-frame map of frame ``i`` (see :data:`EXTRA_KEYS` for units).
+
+        Returns:
+            ``semantic``: int64 [H, W] class ids (255 unlabelled); ``mask``/``metal``: bool [H, W];
+            ``depth``/``roughness``/``metallic``: float [H, W]; ``normal``: float [3, H, W] unit world normals
+            (zero where there is no surface); ``albedo``/``radiance``: float [3, H, W].
+
+        Raises:
+            SceneError: the frame has no such map, the file is missing/corrupt, its size disagrees with the
+                image, or labels contain class ids outside 0-6 and 255.
+        """
+        if name not in EXTRA_KEYS:
+            raise SceneError(f"unknown per-frame map '{name}': choose one of {list(EXTRA_KEYS)}")
+        f = self.frames[i]
+        if name not in f.extras:
+            raise SceneError(f"{self._where(i)} has no '{EXTRA_KEYS[name]}' ({name} map)")
+        path = f.extras[name]
+        what = f"{name} map of {self._where(i)}"
+        if name == "semantic":
+            lab = read_map(path, what)
+            if lab.ndim == 3:
+                lab = lab[..., 0]
+            lab = self._postprocess(i, lab.astype(np.uint8)[..., None] if lab.dtype != np.uint8 else lab[..., None],
+                                    "semantic labels", "nearest")[..., 0]
+            bad = np.setdiff1d(np.unique(lab), np.array(list(range(len(SEMANTIC_CLASSES))) + [UNLABELLED]))
+            if bad.size:
+                raise SceneError(f"{what} ({path}) contains unknown class ids {bad.tolist()}: valid ids are "
+                                 f"0-6 ({', '.join(SEMANTIC_CLASSES)}) and 255 (unlabelled)")
+            return torch.from_numpy(lab.astype(np.int64))
+        if name in ("mask", "metal"):
+            m = read_map(path, what)
+            m = m[..., :1] if m.ndim == 3 else m[..., None]
+            m = self._postprocess(i, (m > 0).astype(np.uint8), name, "nearest")[..., 0]
+            return torch.from_numpy(m > 0)
+        if name == "depth":
+            raw = read_map(path, what)
+            raw = raw[..., :1] if raw.ndim == 3 else raw[..., None]
+            if path.suffix.lower() == ".npy":
+                d = raw.astype(np.float32)
+            else:
+                d = raw.astype(np.float32) * float(self.depth_unit_scale_factor)
+            d = self._postprocess(i, d, "depth map", "nearest")[..., 0]
+            return torch.from_numpy(np.ascontiguousarray(d))
+        img = read_image(path, what)
+        img = self._postprocess(i, img, f"{name} map", "nearest" if name == "normal" else "area")
+        if name in ("roughness", "metallic"):
+            return torch.from_numpy(np.ascontiguousarray(img[..., 0]))
+        img = img[..., :3]
+        if name == "normal" and path.suffix.lower() != ".npy":
+            valid = img.sum(-1, keepdims=True) > 0
+            n = img * 2.0 - 1.0
+            n = n / np.clip(np.linalg.norm(n, axis=-1, keepdims=True), 1e-6, None)
+            img = np.where(valid, n, 0.0).astype(np.float32)
+        return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))
+
+
+# ====================================================================== rays
+@dataclass(frozen=True)
+class RayBundle:
+    """A batch of camera rays.
+
+    Attributes:
+        origins: float [N, 3] world-space ray origins, metres.
+        directions: float [N, 3] unit world-space directions.
+        camera_indices: int64 [N] camera index within the :class:`Cameras` the rays came from.
+        pixels: int64 [N, 2] (u, v) = (column, row) of each ray's pixel.
+        near, far: float [N] ray-parameter bounds (metres along ``directions``); ``far <= near`` means the ray
+            misses the scene box.
+        z_scale: float [N] cosine between the ray and the camera's optical axis (depth = t * z_scale).
+    """
+
+    origins: torch.Tensor
+    directions: torch.Tensor
+    camera_indices: torch.Tensor
+    pixels: torch.Tensor
+    near: torch.Tensor
+    far: torch.Tensor
+    z_scale: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.origins.shape[0])
+
+    def __getitem__(self, idx) -> "RayBundle":
+        return RayBundle(*(getattr(self, f)[idx] for f in
+                           ("origins", "directions", "camera_indices", "pixels", "near", "far", "z_scale")))
+
+    def to(self, device) -> "RayBundle":
+        return RayBundle(*(getattr(self, f).to(device) for f in
+                           ("origins", "directions", "camera_indices", "pixels", "near", "far", "z_scale")))
+
+
+def intersect_aabb(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor,
+                   near_min: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Slab test of rays against an axis-aligned box.
+
+    Args:
+        origins: float [N, 3] ray origins.
+        directions: float [N, 3] ray directions (need not be unit; t is in their units).
+        aabb: float [2, 3] box min and max.
+        near_min: lower clamp for the entry distance (rays starting inside the box start here).
+
+    Returns:
+        (near, far) float [N] each; ``far <= near`` where the ray misses the box.
+    """
+    aabb = aabb.to(origins)
+    inv = 1.0 / torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
+    t0 = (aabb[0] - origins) * inv
+    t1 = (aabb[1] - origins) * inv
+    near = torch.minimum(t0, t1).amax(-1).clamp_min(near_min)
+    far = torch.maximum(t0, t1).amin(-1)
+    return near, far
+
+
+def generate_rays(
+    cameras: Cameras,
+    camera_indices: torch.Tensor | Sequence[int] | None = None,
+    pixels: torch.Tensor | None = None,
+    aabb: torch.Tensor | None = None,
+    near: float | None = None,
+    far: float | None = None,
+    near_min: float = 0.05,
+) -> RayBundle:
+    """Pixel -> world ray, for all pixels of some cameras or for a sampled subset.
+
+    Either give ``pixels`` (int [N, 2] (u, v)) together with ``camera_indices`` (int [N]), or give only
+    ``camera_indices`` (a list of cameras; every pixel of each, row-major) or nothing (every pixel of every
+    camera). Rays are allocated on the cameras' device.
+
+    Ray bounds: ``near``/``far`` when given (the file's), else the intersection with ``aabb`` (entry clamped
+    to ``near_min``), else ``[near_min, 1e3]``.
+
+    Example:
+        >>> rays = generate_rays(scene.cameras, [0], aabb=scene.aabb)  # all pixels of camera 0
+    """
+    device = cameras.device
+    if pixels is None:
+        cams = range(len(cameras)) if camera_indices is None else [int(c) for c in camera_indices]
+        idx_list, pix_list = [], []
+        for c in cams:
+            h, w = int(cameras.height[c]), int(cameras.width[c])
+            v, u = torch.meshgrid(torch.arange(h, device=device), torch.arange(w, device=device), indexing="ij")
+            pix_list.append(torch.stack([u.reshape(-1), v.reshape(-1)], -1))
+            idx_list.append(torch.full((h * w,), c, dtype=torch.long, device=device))
+        pixels = torch.cat(pix_list) if pix_list else torch.zeros(0, 2, dtype=torch.long, device=device)
+        cam_idx = torch.cat(idx_list) if idx_list else torch.zeros(0, dtype=torch.long, device=device)
+    else:
+        check_shape(pixels, "N 2", "pixels")
+        if camera_indices is None:
+            raise ValueError("generate_rays: pixels given without camera_indices")
+        cam_idx = torch.as_tensor(camera_indices, dtype=torch.long, device=device).expand(pixels.shape[0])
+        pixels = pixels.to(device)
+    c2w = cameras.c2w[cam_idx]
+    fx, fy, cx, cy = (getattr(cameras, k)[cam_idx] for k in ("fx", "fy", "cx", "cy"))
+    pu = pixels[:, 0].to(c2w.dtype) + 0.5
+    pv = pixels[:, 1].to(c2w.dtype) + 0.5
+    d_cam = torch.stack([(pu - cx) / fx, -(pv - cy) / fy, -torch.ones_like(pu)], -1)
+    d_world = (c2w[:, :3, :3] @ d_cam.unsqueeze(-1)).squeeze(-1)
+    norm = d_world.norm(dim=-1, keepdim=True)
+    directions = d_world / norm
+    z_scale = 1.0 / norm.squeeze(-1)
+    origins = c2w[:, :3, 3].expand_as(directions).contiguous()
+    if near is not None and far is not None:
+        n = torch.full_like(pu, float(near))
+        f = torch.full_like(pu, float(far))
+    elif aabb is not None:
+        n, f = intersect_aabb(origins, directions, aabb, near_min)
+    else:
+        n, f = torch.full_like(pu, near_min), torch.full_like(pu, 1e3)
+    return RayBundle(origins, directions, cam_idx, pixels.long(), n, f, z_scale)
+
+
+def project_points(cameras: Cameras, index: int, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Project world points into camera ``index``.
+
+    Args:
+        cameras: the cameras.
+        index: which camera.
+        points: float [N, 3] world points, metres.
+
+    Returns:
+        (uv, depth): float [N, 2] continuous pixel coordinates in the convention of the module docstring
+        (pixel (u, v)'s centre is at (u + 0.5, v + 0.5); ``floor(uv)`` is the pixel index), and float [N]
+        depth along the optical axis (positive in front of the camera).
+    """
+    check_shape(points, "N 3", "points")
+    c2w = cameras.c2w[index].to(points)
+    rel = points - c2w[:3, 3]
+    p_cam = rel @ c2w[:3, :3]  # R^T (p - o)
+    depth = -p_cam[:, 2]
+    safe = torch.where(depth.abs() < 1e-9, torch.full_like(depth, 1e-9), depth)
+    u = cameras.fx[index].to(points) * p_cam[:, 0] / safe + cameras.cx[index].to(points)
+    v = -cameras.fy[index].to(points) * p_cam[:, 1] / safe + cameras.cy[index].to(points)
+    return torch.stack([u, v], -1), depth
+
+
+# ====================================================================== loading
+def list_splits(path: str | Path) -> list[str]:
+    """Splits available at ``path`` (see :func:`load_scene`)."""
+    path = Path(path)
+    if not path.exists():
+        raise SceneError(f"scene not found: {path}")
+    if path.is_dir():
+        found = [s for s in ("train", "val", "test") if (path / f"transforms_{s}.json").is_file()]
+        if found:
+            return found
+        if (path / "transforms.json").is_file() or _find_colmap(path) is not None:
+            return ["train", "test", "all"]
+        raise SceneError(f"{path}: no transforms_*.json, transforms.json or COLMAP model (cameras.txt + images.txt) found")
+    if path.suffix.lower() == ".npz":
+        return ["train", "test", "all"]
+    if path.suffix.lower() == ".json":
+        return ["train", "test", "all"]
+    raise SceneError(f"{path}: not a scene directory, transforms JSON or tiny-NeRF .npz")
+
+
+def load_scene(
+    path: str | Path,
+    split: Split = "train",
+    downscale: int = 1,
+    background: Sequence[float] = (1.0, 1.0, 1.0),
+    test_every: int = 8,
+    n_train: int = 100,
+    aabb: Sequence[Sequence[float]] | None = None,
+    distortion: Literal["undistort", "reject"] = "undistort",
+) -> Scene:
+    """Load one split of a scene (lazily: only headers are read here).
+
+    Args:
+        path: scene directory, transforms JSON, COLMAP model directory or tiny-NeRF ``.npz``.
+        split: ``train``, ``val``, ``test`` or ``all``.
+        downscale: integer factor to shrink images and intrinsics by (area filter; nearest for labels/depth).
+        background: RGB in [0, 1] that RGBA images are composited onto.
+        test_every: for a single ``transforms.json`` or COLMAP model, frame ``i`` is ``test`` when
+            ``i % test_every == 0`` (``val`` = ``test``).
+        n_train: for a tiny-NeRF ``.npz``, the first ``n_train`` frames are ``train``, the rest ``test``.
+        aabb: override the scene bounds ``[[xmin, ymin, zmin], [xmax, ymax, zmax]]`` (metres).
+        distortion: images with radial/tangential distortion are undistorted on load (``undistort``) or
+            refused (``reject``). Fisheye models are always refused.
+
+    Raises:
+        SceneError: naming the file, frame and value for missing/corrupt images, missing, non-finite or
+            non-rigid poses, size mismatches, empty splits and unsupported camera models.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise SceneError(f"scene not found: {path}")
+    if split not in ("train", "val", "test", "all"):
+        raise SceneError(f"unknown split '{split}': choose train, val, test or all")
+    if not isinstance(downscale, int) or downscale < 1:
+        raise SceneError(f"downscale must be a positive integer, got {downscale!r}")
+    bg = tuple(float(c) for c in background)
+    if len(bg) != 3 or not all(0.0 <= c <= 1.0 for c in bg):
+        raise SceneError(f"background must be 3 values in [0, 1], got {list(background)}")
+    if path.is_file() and path.suffix.lower() == ".npz":
+        scene = _load_npz(path, split, n_train, bg, downscale)
+    elif path.is_file():
+        scene = _load_transforms(path, split, test_every, bg, downscale, distortion, single=True)
+    elif any((path / f"transforms_{s}.json").is_file() for s in ("train", "val", "test")):
+        file = path / f"transforms_{split}.json"
+        if split == "all":
+            parts = [load_scene(path, s, downscale, bg, test_every, n_train, aabb, distortion)
+                     for s in list_splits(path)]
+            return _concat(parts)
+        if not file.is_file():
+            avail = [s for s in ("train", "val", "test") if (path / f"transforms_{s}.json").is_file()]
+            raise SceneError(f"{path}: split '{split}' not found (no {file.name}); available splits: {avail}")
+        siblings = [path / f"transforms_{s}.json" for s in ("train", "val", "test")]
+        scene = _load_transforms(file, split, test_every, bg, downscale, distortion, single=False,
+                                 bounds_files=[f for f in siblings if f.is_file()])
+    elif (path / "transforms.json").is_file():
+        scene = _load_transforms(path / "transforms.json", split, test_every, bg, downscale, distortion, single=True)
+    elif _find_colmap(path) is not None:
+        scene = _load_colmap(path, split, test_every, bg, downscale, distortion)
+    else:
+        raise SceneError(f"{path}: no transforms_*.json, transforms.json, COLMAP model (cameras.txt + images.txt) "
+                         "or .npz found")
+    if len(scene) == 0:
+        raise SceneError(f"{scene.source}: split '{split}' is empty (no frames); check the file or the split rule")
+    if aabb is not None:
+        box = torch.tensor(aabb, dtype=torch.float32)
+        if box.shape != (2, 3) or not bool((box[1] > box[0]).all()):
+            raise SceneError(f"aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with max > min, got {aabb}")
+        scene = replace(scene, aabb=box)
+    return scene
+
+
+def _concat(parts: list[Scene]) -> Scene:
+    cams = Cameras(*(torch.cat([getattr(p.cameras, f) for p in parts]) for f in
+                     ("c2w", "fx", "fy", "cx", "cy", "width", "height")))
+    frames = tuple(f for p in parts for f in p.frames)
+    return replace(parts[0], split="all", cameras=cams, frames=frames)
+
+
+def _split_indices(n: int, split: str, test_every: int) -> list[int]:
+    if split == "all":
+        return list(range(n))
+    if test_every < 2:
+        raise SceneError(f"test_every must be >= 2, got {test_every}")
+    if split in ("test", "val"):
+        return [i for i in range(n) if i % test_every == 0]
+    return [i for i in range(n) if i % test_every != 0]
+
+
+def _image_size(path: Path, where: str) -> tuple[int, int]:
+    """(width, height) from the image header (fast; no decode)."""
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise SceneError(f"{where}: image not found: {path}")
+    try:
+        with Image.open(path) as im:
+            return int(im.size[0]), int(im.size[1])
+    except (UnidentifiedImageError, OSError) as e:
+        raise SceneError(f"{where}: image {path} is corrupt or not an image ({e}); re-export it") from e
+
+
+def _resolve_image(base: Path, file_path: str, where: str) -> Path:
+    p = (base / file_path)
+    if p.is_file():
+        return p
+    if p.suffix == "":
+        for ext in (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".exr"):
+            if p.with_suffix(ext).is_file():
+                return p.with_suffix(ext)
+    raise SceneError(f"{where}: image not found: {p}")
+
+
+def _scene_aabb(c2w: np.ndarray, fx: np.ndarray, width: np.ndarray, meta: dict) -> np.ndarray:
+    """Scene bounds: the file's ``aabb`` if present, else an estimate from the cameras.
+
+    The estimate: the point closest (least squares) to all optical axes is the centre; the half-size is the
+    half-width that the median camera sees at that distance, i.e. median(dist) * tan(half horizontal FOV)
+    (for Blender Lego: cameras at 4.03 m, FOV 39.6 deg -> [-1.45, 1.45]^3). Pass ``aabb=`` to override.
+    """
+    if "aabb" in meta:
+        box = np.asarray(meta["aabb"], dtype=np.float64)
+        if box.shape != (2, 3) or not (box[1] > box[0]).all():
+            raise SceneError(f"'aabb' must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with max > min, got {meta['aabb']}")
+        return box
+    origins = c2w[:, :3, 3]
+    axes = -c2w[:, :3, 2]
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for o, d in zip(origins, axes):
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ o
+    if np.linalg.cond(A) < 1e6:
+        centre = np.linalg.solve(A, b)
+    else:  # parallel axes (forward-facing capture): look 1 median spacing ahead of the mean camera
+        centre = origins.mean(0) + axes.mean(0)
+    dist = np.linalg.norm(origins - centre, axis=1)
+    half_fov = np.arctan(0.5 * width / fx)
+    half = float(np.median(dist) * np.tan(np.median(half_fov)))
+    if not np.isfinite(half) or half <= 0:
+        half = 1.0
+    return np.stack([centre - half, centre + half])
+
+
+def _read_transforms(file: Path) -> dict:
+    try:
+        meta = json.loads(file.read_text())
+    except json.JSONDecodeError as e:
+        raise SceneError(f"{file}: invalid JSON ({e})") from e
+    if not isinstance(meta.get("frames"), list):
+        raise SceneError(f"{file}: missing 'frames' list")
+    return meta
+
+
+def _all_poses_for_bounds(files: list[Path]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Poses, focal lengths and widths of every frame of every split (the scene box must not depend on the split).
+
+    Unparseable poses are skipped here; the split that holds them reports them when it is loaded.
+    """
+    c2ws, fxs, ws = [], [], []
+    for f in files:
+        meta = _read_transforms(f)
+        for fm in meta["frames"]:
+            try:
+                m = np.asarray(fm["transform_matrix"], dtype=np.float64)
+                if m.shape == (3, 4):
+                    m = np.vstack([m, [0, 0, 0, 1]])
+                if m.shape != (4, 4) or not np.isfinite(m).all():
+                    continue
+            except (KeyError, TypeError, ValueError):
+                continue
+            w = float(fm.get("w", meta.get("w", 0)) or 0)
+            if fm.get("fl_x", meta.get("fl_x")) is not None and w > 0:
+                fx = float(fm.get("fl_x", meta.get("fl_x")))
+            else:
+                ang = float(fm.get("camera_angle_x", meta.get("camera_angle_x", 0.69)))
+                w, fx = 1.0, 0.5 / math.tan(0.5 * ang)
+            c2ws.append(m); fxs.append(fx); ws.append(w)  # noqa: E702
+    return np.stack(c2ws) if c2ws else np.zeros((0, 4, 4)), np.array(fxs), np.array(ws)
+
+
+def _load_transforms(file: Path, split: str, test_every: int, bg, downscale: int, distortion: str,
+                     single: bool, bounds_files: list[Path] | None = None) -> Scene:
+    meta = _read_transforms(file)
+    frames_meta = meta["frames"]
+    if single:
+        order = _split_indices(len(frames_meta), split, test_every)
+        frames_meta = [frames_meta[i] for i in order]
+    base = file.parent
+    c2ws, fxs, fys, cxs, cys, ws, hs, frames = [], [], [], [], [], [], [], []
+    dist_keys = ("k1", "k2", "p1", "p2", "k3")
+    for i, fm in enumerate(frames_meta):
+        where = f"{file} frame {i}"
+        if "file_path" not in fm:
+            raise SceneError(f"{where}: missing 'file_path'")
+        where = f"{file} frame {i} ('{fm['file_path']}')"
+        if "transform_matrix" not in fm:
+            raise SceneError(f"{where}: missing 'transform_matrix' (camera pose)")
+        try:
+            m = np.asarray(fm["transform_matrix"], dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise SceneError(f"{where}: transform_matrix is not a numeric matrix ({e})") from e
+        check_rigid_pose(m, where)
+        if m.shape == (3, 4):
+            m = np.vstack([m, [0, 0, 0, 1]])
+        img_path = _resolve_image(base, fm["file_path"], where)
+        w_img, h_img = _image_size(img_path, where)
+        get = lambda k, d=None: fm.get(k, meta.get(k, d))  # noqa: E731 - per-frame overrides shared intrinsics
+        w = get("w")
+        h = get("h")
+        w = int(w) if w is not None else w_img
+        h = int(h) if h is not None else h_img
+        if (w, h) != (w_img, h_img):
+            raise SceneError(f"{where}: image {img_path.name} is {w_img}x{h_img} but the intrinsics say w={w}, h={h}; "
+                             "fix w/h (or fl_x, cx, ...) in the transforms file or resize the image")
+        if get("fl_x") is not None:
+            fx = float(get("fl_x"))
+            fy = float(get("fl_y", fx))
+        elif get("camera_angle_x") is not None:
+            fx = 0.5 * w / math.tan(0.5 * float(get("camera_angle_x")))
+            fy = 0.5 * h / math.tan(0.5 * float(get("camera_angle_y"))) if get("camera_angle_y") is not None else fx
+            if get("fl_y") is not None:
+                fy = float(get("fl_y"))
+        else:
+            raise SceneError(f"{where}: no intrinsics: give 'camera_angle_x' or 'fl_x' (and optionally fl_y, cx, cy)")
+        cx = float(get("cx", w / 2.0))
+        cy = float(get("cy", h / 2.0))
+        if not all(math.isfinite(v) and v > 0 for v in (fx, fy)):
+            raise SceneError(f"{where}: focal length must be positive and finite, got fl_x={fx}, fl_y={fy}")
+        coeffs = tuple(float(get(k, 0.0)) for k in dist_keys)
+        if get("k4") is not None or get("camera_model") in ("OPENCV_FISHEYE", "FISHEYE"):
+            raise SceneError(f"{where}: fisheye distortion is not supported; undistort the images first "
+                             "(e.g. `colmap image_undistorter`) and drop k1..k4")
+        has_dist = any(abs(c) > 0 for c in coeffs)
+        if has_dist and distortion == "reject":
+            raise SceneError(f"{where}: images are distorted (k1..p2 = {coeffs[:4]}) and distortion='reject'; "
+                             "pass distortion='undistort' or undistort them first")
+        extras = {}
+        for name, key in EXTRA_KEYS.items():
+            if fm.get(key):
+                extras[name] = base / fm[key]
+        c2ws.append(m)
+        fxs.append(fx); fys.append(fy); cxs.append(cx); cys.append(cy); ws.append(w); hs.append(h)  # noqa: E702
+        frames.append(Frame(name=str(fm["file_path"]), image_path=img_path, extras=extras,
+                            distortion=coeffs if has_dist else None, native_size=(w, h)))
+    c2w = np.stack(c2ws) if c2ws else np.zeros((0, 4, 4))
+    all_c2w, all_fx, all_w = _all_poses_for_bounds(bounds_files or [file])
+    box = _scene_aabb(all_c2w, all_fx, all_w, meta) if len(all_c2w) else np.array([[-1.0] * 3, [1.0] * 3])
+    sh = _read_sh(meta, base, file)
+    envmap = base / meta["envmap"] if meta.get("envmap") else None
+    cams = _make_cameras(c2w, fxs, fys, cxs, cys, ws, hs, downscale)
+    extra_meta = {k: v for k, v in meta.items() if k != "frames"}
+    return Scene(source=file, split=split, cameras=cams, frames=tuple(frames), aabb=torch.tensor(box, dtype=torch.float32),
+                 near=_opt_float(meta.get("near")), far=_opt_float(meta.get("far")), sh=sh, envmap_path=envmap,
+                 background=bg, downscale=downscale, srgb=True,
+                 depth_unit_scale_factor=float(meta.get("depth_unit_scale_factor", 0.001)), meta=extra_meta)
+
+
+def _opt_float(x) -> float | None:
+    return None if x is None else float(x)
+
+
+def _read_sh(meta: dict, base: Path, file: Path) -> torch.Tensor | None:
+    sh = meta.get("sh")
+    if sh is None and meta.get("sh_path"):
+        p = base / meta["sh_path"]
+        if not p.is_file():
+            raise SceneError(f"{file}: sh_path {p} not found")
+        loaded = json.loads(p.read_text())
+        sh = loaded.get("coeffs", loaded) if isinstance(loaded, dict) else loaded
+    if sh is None:
+        return None
+    arr = np.asarray(sh, dtype=np.float32)
+    if arr.size != 27:
+        raise SceneError(f"{file}: 'sh' must hold 9 x [r, g, b] = 27 numbers, got shape {list(arr.shape)}")
+    arr = arr.reshape(9, 3)
+    if not np.isfinite(arr).all():
+        raise SceneError(f"{file}: 'sh' contains NaN or inf")
+    return torch.from_numpy(arr)
+
+
+def _make_cameras(c2w, fxs, fys, cxs, cys, ws, hs, downscale: int) -> Cameras:
+    d = float(downscale)
+    t = lambda x: torch.tensor(np.asarray(x, dtype=np.float64), dtype=torch.float32)  # noqa: E731
+    w = torch.tensor([int(x) // downscale for x in ws], dtype=torch.long)
+    h = torch.tensor([int(x) // downscale for x in hs], dtype=torch.long)
+    # With pixel centres at +0.5, scaling pixel coordinates by 1/d maps cx -> cx/d exactly (edges to edges).
+    return Cameras(c2w=t(c2w).reshape(-1, 4, 4), fx=t(fxs) / d, fy=t(fys) / d, cx=t(cxs) / d, cy=t(cys) / d,
+                   width=w, height=h)
+
+
+def _load_npz(file: Path, split: str, n_train: int, bg, downscale: int) -> Scene:
+    try:
+        data = np.load(file)
+        images, poses, focal = data["images"], data["poses"], float(data["focal"])
+    except KeyError as e:
+        raise SceneError(f"{file}: tiny-NeRF .npz needs keys 'images', 'poses', 'focal' (missing {e})") from e
+    except Exception as e:  # noqa: BLE001
+        raise SceneError(f"{file}: could not read .npz ({e})") from e
+    if images.ndim != 4 or images.shape[-1] not in (3, 4):
+        raise SceneError(f"{file}: 'images' must be [N, H, W, 3|4], got {list(images.shape)}")
+    if poses.shape[0] != images.shape[0]:
+        raise SceneError(f"{file}: {images.shape[0]} images but {poses.shape[0]} poses")
+    if images.dtype == np.uint8:
+        images = images.astype(np.float32) / 255.0
+    n = images.shape[0]
+    idx = {"train": list(range(min(n_train, n))), "test": list(range(min(n_train, n), n)),
+           "val": list(range(min(n_train, n), n)), "all": list(range(n))}[split]
+    names = data["source_frames"] if "source_frames" in data.files else [f"{file.name}[{i}]" for i in range(n)]
+    h, w = images.shape[1:3]
+    c2ws = []
+    for i in idx:
+        check_rigid_pose(poses[i], f"{file} frame {i}")
+        p = np.asarray(poses[i], dtype=np.float64)
+        c2ws.append(np.vstack([p, [0, 0, 0, 1]]) if p.shape == (3, 4) else p)
+    c2w = np.stack(c2ws) if c2ws else np.zeros((0, 4, 4))
+    k = len(idx)
+    cams = _make_cameras(c2w, [focal] * k, [focal] * k, [w / 2] * k, [h / 2] * k, [w] * k, [h] * k, downscale)
+    frames = tuple(Frame(name=str(names[i]), image_path=None, native_size=(w, h)) for i in idx)
+    all_c2w = np.stack([np.vstack([p, [0, 0, 0, 1]]) if p.shape == (3, 4) else p for p in poses.astype(np.float64)])
+    box = _scene_aabb(all_c2w, np.full(n, focal), np.full(n, w), {})
+    if not np.isfinite(images[idx]).all():
+        bad = [i for i in idx if not np.isfinite(images[i]).all()]
+        raise SceneError(f"{file}: images {bad[:5]} contain NaN or inf")
+    return Scene(source=file, split=split, cameras=cams, frames=frames, aabb=torch.tensor(box, dtype=torch.float32),
+                 near=2.0 if "near" not in data.files else float(data["near"]),
+                 far=6.0 if "far" not in data.files else float(data["far"]),
+                 background=bg, downscale=downscale, srgb=True, meta={"format": "tiny-nerf npz"},
+                 _array_images=images[idx])
+
+
+# ---------------------------------------------------------------------- COLMAP
+def _find_colmap(path: Path) -> Path | None:
+    for sub in ("", "sparse/0", "sparse", "colmap/sparse/0"):
+        d = path / sub if sub else path
+        if (d / "cameras.txt").is_file() and (d / "images.txt").is_file():
+            return d
+    return None
+
+
+def _qvec_to_rotmat(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * y * y - 2 * z * z, 2 * x * y - 2 * w * z, 2 * x * z + 2 * w * y],
+        [2 * x * y + 2 * w * z, 1 - 2 * x * x - 2 * z * z, 2 * y * z - 2 * w * x],
+        [2 * x * z - 2 * w * y, 2 * y * z + 2 * w * x, 1 - 2 * x * x - 2 * y * y]])
+
+
+def _load_colmap(path: Path, split: str, test_every: int, bg, downscale: int, distortion: str) -> Scene:
+    model = _find_colmap(path)
+    cams_txt = model / "cameras.txt"
+    cameras: dict[int, tuple[str, int, int, list[float]]] = {}
+    for ln, line in enumerate(cams_txt.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        try:
+            cam_id, model_name, w, h = int(parts[0]), parts[1], int(parts[2]), int(parts[3])
+            params = [float(p) for p in parts[4:]]
+        except (ValueError, IndexError) as e:
+            raise SceneError(f"{cams_txt}:{ln}: malformed camera line '{line}'") from e
+        cameras[cam_id] = (model_name, w, h, params)
+    imgs_txt = model / "images.txt"
+    lines = [ln for ln in imgs_txt.read_text().splitlines() if not ln.startswith("#")]
+    records = []
+    i = 0
+    while i < len(lines):
+        line = lines[i].strip()
+        if not line:
+            i += 1
+            continue
+        parts = line.split()
+        if len(parts) < 10:
+            raise SceneError(f"{imgs_txt}: malformed image line '{line}' (expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME)")
+        records.append(parts)
+        i += 2  # skip the POINTS2D line
+    records.sort(key=lambda p: p[9])
+    image_dir = path / "images"
+    if not image_dir.is_dir():
+        image_dir = model.parent / "images" if (model.parent / "images").is_dir() else path
+    order = _split_indices(len(records), split, test_every)
+    c2ws, fxs, fys, cxs, cys, ws, hs, frames = [], [], [], [], [], [], [], []
+    bounds_c2w, bounds_fx, bounds_w = [], [], []
+    for parts in records:  # the scene box must not depend on the split
+        try:
+            q = np.array([float(x) for x in parts[1:5]]); t = np.array([float(x) for x in parts[5:8]])  # noqa: E702
+            cam = cameras[int(parts[8])]
+        except (ValueError, KeyError):
+            continue
+        if np.isfinite(q).all() and np.isfinite(t).all() and np.linalg.norm(q) > 1e-8:
+            w2c = np.eye(4); w2c[:3, :3], w2c[:3, 3] = _qvec_to_rotmat(q), t  # noqa: E702
+            bounds_c2w.append(np.linalg.inv(w2c) @ np.diag([1.0, -1.0, -1.0, 1.0]))
+            bounds_fx.append(cam[3][0]); bounds_w.append(cam[1])  # noqa: E702
+    for k in order:
+        parts = records[k]
+        name = parts[9]
+        where = f"{imgs_txt} image '{name}'"
+        q = np.array([float(x) for x in parts[1:5]])
+        t = np.array([float(x) for x in parts[5:8]])
+        if not (np.isfinite(q).all() and np.isfinite(t).all()) or np.linalg.norm(q) < 1e-8:
+            raise SceneError(f"{where}: pose is not finite or the quaternion is zero: q={q.tolist()}, t={t.tolist()}")
+        cam_id = int(parts[8])
+        if cam_id not in cameras:
+            raise SceneError(f"{where}: camera id {cam_id} not in {cams_txt}")
+        model_name, w, h, params = cameras[cam_id]
+        R = _qvec_to_rotmat(q)
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = R, t
+        c2w = np.linalg.inv(w2c) @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera -> OpenGL camera
+        coeffs: tuple[float, ...] | None = None
+        if model_name == "SIMPLE_PINHOLE":
+            fx = fy = params[0]; cx, cy = params[1], params[2]  # noqa: E702
+        elif model_name == "PINHOLE":
+            fx, fy, cx, cy = params[:4]
+        elif model_name in _RADIAL_CV_MODELS:
+            if model_name == "SIMPLE_RADIAL":
+                fx = fy = params[0]; cx, cy = params[1], params[2]; coeffs = (params[3], 0.0, 0.0, 0.0)  # noqa: E702
+            elif model_name == "RADIAL":
+                fx = fy = params[0]; cx, cy = params[1], params[2]; coeffs = (params[3], params[4], 0.0, 0.0)  # noqa: E702
+            elif model_name == "OPENCV":
+                fx, fy, cx, cy = params[:4]; coeffs = tuple(params[4:8])  # noqa: E702
+            else:  # FULL_OPENCV: k1 k2 p1 p2 k3 k4 k5 k6 (OpenCV's rational model order)
+                fx, fy, cx, cy = params[:4]; coeffs = tuple(params[4:12])  # noqa: E702
+            if distortion == "reject" and any(abs(c) > 0 for c in coeffs):
+                raise SceneError(f"{cams_txt}: camera {cam_id} uses the distorted model {model_name} and "
+                                 "distortion='reject'; undistort with `colmap image_undistorter` or pass distortion='undistort'")
+        elif model_name in _FISHEYE_MODELS:
+            raise SceneError(f"{cams_txt}: camera {cam_id} uses the fisheye model {model_name}, which is not supported; "
+                             "run `colmap image_undistorter` and load the undistorted (PINHOLE) model")
+        else:
+            raise SceneError(f"{cams_txt}: camera {cam_id} has unknown model {model_name}")
+        img_path = _resolve_image(image_dir, name, where)
+        w_img, h_img = _image_size(img_path, where)
+        if (w_img, h_img) != (w, h):
+            raise SceneError(f"{where}: image {img_path} is {w_img}x{h_img} but camera {cam_id} in {cams_txt} is {w}x{h}")
+        check_rigid_pose(c2w, where)
+        c2ws.append(c2w)
+        fxs.append(fx); fys.append(fy); cxs.append(cx); cys.append(cy); ws.append(w); hs.append(h)  # noqa: E702
+        frames.append(Frame(name=name, image_path=img_path, distortion=coeffs if coeffs and any(coeffs) else None,
+                            native_size=(w, h)))
+    c2w = np.stack(c2ws) if c2ws else np.zeros((0, 4, 4))
+    meta: dict = {"format": "colmap", "model": str(model)}
+    pts = model / "points3D.txt"
+    if pts.is_file():
+        xyz = [list(map(float, ln.split()[1:4])) for ln in pts.read_text().splitlines()
+               if ln.strip() and not ln.startswith("#")]
+        if len(xyz) >= 10:
+            arr = np.asarray(xyz)
+            lo, hi = np.percentile(arr, 1, axis=0), np.percentile(arr, 99, axis=0)
+            pad = 0.1 * (hi - lo)
+            meta["aabb"] = [(lo - pad).tolist(), (hi + pad).tolist()]
+    box = (_scene_aabb(np.stack(bounds_c2w), np.array(bounds_fx), np.array(bounds_w), meta) if bounds_c2w
+           else np.array([[-1.0] * 3, [1.0] * 3]))
+    cams = _make_cameras(c2w, fxs, fys, cxs, cys, ws, hs, downscale)
+    return Scene(source=model, split=split, cameras=cams, frames=tuple(frames), aabb=torch.tensor(box, dtype=torch.float32),
+                 background=bg, downscale=downscale, srgb=True, meta=meta)
