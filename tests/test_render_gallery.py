@@ -1,0 +1,326 @@
+"""Tests of samples/render_gallery.py and of the committed sample scene samples/gallery/.
+
+Mitsuba tests skip with a reason when mitsuba is not installed; ``llvm_*`` variants only run when libLLVM 19 exists
+(without it the first llvm render aborts the whole Python process).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = REPO / "samples" / "gallery"
+
+
+def _load_renderer():
+    spec = importlib.util.spec_from_file_location("render_gallery", REPO / "samples" / "render_gallery.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("render_gallery", module)
+    spec.loader.exec_module(module)
+    return module
+
+
+rg = _load_renderer()
+HAS_MITSUBA = importlib.util.find_spec("mitsuba") is not None
+needs_mitsuba = pytest.mark.skipif(not HAS_MITSUBA, reason="mitsuba is not installed (pip install 'dars-toolkit[render]')")
+VARIANTS = ["scalar_rgb"] + (["llvm_ad_rgb"] if rg.llvm_available() else [])
+needs_sample = pytest.mark.skipif(not (SAMPLE / "transforms_train.json").is_file(), reason=f"sample scene not rendered at {SAMPLE}")
+
+
+def _project(c2w: np.ndarray, f: float, c: float, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Toolkit pinhole convention: pixel-index coordinates (u, v) and depth along −z_cam."""
+    w2c = np.linalg.inv(c2w)
+    p = points @ w2c[:3, :3].T + w2c[:3, 3]
+    depth = -p[:, 2]
+    u = f * p[:, 0] / depth + c - 0.5
+    v = -f * p[:, 1] / depth + c - 0.5
+    return np.stack([u, v], -1), depth
+
+
+# --------------------------------------------------------------------------------------------------- camera helpers
+def test_c2w_to_mitsuba_axes():
+    c2w = rg.look_at(np.array([1.0, -3.0, 1.5]), np.array([0.0, 0.5, 1.0]))
+    to_world = rg.c2w_to_mitsuba(c2w)
+    forward_gl = c2w[:3, :3] @ np.array([0.0, 0.0, -1.0])
+    np.testing.assert_allclose(to_world[:3, :3] @ np.array([0.0, 0.0, 1.0]), forward_gl)  # mitsuba looks +z
+    np.testing.assert_allclose(to_world[:3, :3] @ np.array([1.0, 0.0, 0.0]), -c2w[:3, 0])  # mitsuba x is left
+    np.testing.assert_allclose(to_world[:3, :3] @ np.array([0.0, 1.0, 0.0]), c2w[:3, 1])
+    np.testing.assert_allclose(to_world[:3, 3], c2w[:3, 3])
+    np.testing.assert_allclose(rg.c2w_to_mitsuba(np.eye(4)), np.diag([-1.0, 1.0, -1.0, 1.0]))
+    with pytest.raises(ValueError, match="4x4"):
+        rg.c2w_to_mitsuba(np.eye(3))
+
+
+def test_pixel_rays_follow_toolkit_convention():
+    c2w = rg.look_at(np.array([0.5, -2.0, 1.0]), np.array([0.0, 0.0, 1.2]))
+    size, fov = 16, math.radians(45)
+    f = rg.focal_from_fov(fov, size)
+    o, d, scale = rg.pixel_rays(c2w, fov, size)
+    for row, col in [(0, 0), (3, 11), (15, 15)]:
+        d_cam = np.array([(col + 0.5 - size / 2) / f, -(row + 0.5 - size / 2) / f, -1.0])
+        np.testing.assert_allclose(d[0, row, col], c2w[:3, :3] @ d_cam / np.linalg.norm(d_cam), atol=1e-12)
+        assert scale[0, row, col] == pytest.approx(1.0 / np.linalg.norm(d_cam))
+    # a point 2 m along a pixel's ray projects back onto that pixel centre
+    pts = o[0, 3, 11] + d[0, 3, 11] * 2.0
+    uv, depth = _project(c2w, f, size / 2, pts[None])
+    np.testing.assert_allclose(uv[0], [11.0, 3.0], atol=1e-9)
+    assert depth[0] == pytest.approx(2.0 * scale[0, 3, 11])
+
+
+def test_sampled_cameras_are_rigid_and_in_front():
+    cams = rg.sample_cameras(40, seed=3)
+    for c2w in cams:
+        R = c2w[:3, :3]
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        eye = c2w[:3, 3]
+        assert eye[1] < 0.6 and 1.0 < np.linalg.norm(eye - np.array([0.05, 0.55, 1.0])) < 4.0  # in front of the wall
+        forward = -R[:, 2]
+        assert forward @ (np.array([0.05, 0.55, 1.0]) - eye) > 0  # looks at the scene
+        assert abs(R[2, 0]) < 1e-9  # no roll: camera x stays horizontal
+
+
+# --------------------------------------------------------------------------------------------- (a) camera convention
+@needs_mitsuba
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_mitsuba_render_matches_pinhole_projection(variant):
+    mi, _, _ = rg.import_mitsuba(variant)
+    centres = np.array([[0.3, 0.1, 0.2], [-0.4, 0.25, -0.1], [0.1, -0.35, 0.3], [-0.2, -0.2, -0.3]])
+    scene_dict = {"type": "scene"}
+    for k, c in enumerate(centres):
+        scene_dict[f"s{k}"] = {"type": "sphere", "center": c.tolist(), "radius": 0.04,
+                               "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}}
+    scene = mi.load_dict(scene_dict)
+    size, fov = 64, math.radians(40.0)
+    c2w = rg.look_at(np.array([0.8, -2.5, 1.0]), np.array([0.05, 0.0, 0.05]))
+    sensor = mi.load_dict({
+        "type": "perspective", "fov": math.degrees(fov), "fov_axis": "x", "to_world": mi.ScalarTransform4f(rg.c2w_to_mitsuba(c2w).tolist()),
+        "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+        "sampler": {"type": "independent", "sample_count": 16},
+    })
+    img = np.array(mi.render(scene, sensor=sensor, integrator=mi.load_dict({"type": "direct"}), spp=16)).mean(-1)
+    uv, _ = _project(c2w, rg.focal_from_fov(fov, size), size / 2, centres)
+    for (u, v) in uv:
+        r0, c0 = int(round(v)), int(round(u))
+        rows, cols = np.mgrid[r0 - 5 : r0 + 6, c0 - 5 : c0 + 6]
+        win = img[r0 - 5 : r0 + 6, c0 - 5 : c0 + 6]
+        assert win.sum() > 1.0, f"sphere not found near ({u:.1f}, {v:.1f})"
+        centroid = np.array([(cols * win).sum(), (rows * win).sum()]) / win.sum()
+        assert np.abs(centroid - [u, v]).max() < 0.5, f"{variant}: centroid {centroid} vs projection ({u:.2f}, {v:.2f})"
+    assert img.sum() == pytest.approx(sum(img[int(round(v)) - 5 : int(round(v)) + 6, int(round(u)) - 5 : int(round(u)) + 6].sum() for u, v in uv), rel=1e-3)
+
+
+# ------------------------------------------------------------------------------------------ environment orientation
+def _feature_env(H: int = 64, W: int = 128) -> np.ndarray:
+    """Distinct coloured lobes (red toward +x, green toward +y, blue up, white down-left) on a grey floor."""
+    from toolkit.sh import latlong_directions
+
+    d = latlong_directions(H, W, dtype=torch.float64).numpy()
+    out = np.full((H, W, 3), 0.1)
+    for axis, colour in [((1, 0, 0.2), (4, 0.2, 0.2)), ((0, 1, 0.2), (0.2, 4, 0.2)), ((0.3, 0, 1), (0.2, 0.2, 4)), ((-0.6, -0.5, -0.6), (3, 3, 3))]:
+        a = np.asarray(axis, float) / np.linalg.norm(axis)
+        out += np.exp(8.0 * (d @ a - 1.0))[..., None] * np.asarray(colour)
+    return out.astype(np.float32)
+
+
+@needs_mitsuba
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_environment_orientation_matches_spec_latlong(variant):
+    from toolkit.sh import lookup_latlong, rotation_z
+
+    mi, dr, _ = rg.import_mitsuba(variant)
+    env = rg.Environment(latlong=_feature_env(), rotate_z_deg=30.0, source="test")
+    scene = mi.load_dict({"type": "scene", "env": {"type": "envmap", "bitmap": mi.Bitmap(rg._mitsuba_env_bitmap(env.latlong)),
+                                                   "to_world": mi.ScalarTransform4f().rotate([0, 0, 1], 30.0).rotate([1, 0, 0], 90)}})
+    size, fov = 24, math.radians(70.0)
+    rz = rotation_z(30.0).numpy()
+    latlong = torch.as_tensor(env.latlong, dtype=torch.float64)
+    for target in [(1.0, 0.3, 0.2), (-0.2, 1.0, 0.4), (0.1, -1.0, -0.5), (0.2, 0.1, 1.0)]:
+        c2w = rg.look_at(np.zeros(3), np.asarray(target), up=(0.0, 0.0, 1.0) if abs(target[2]) < 0.9 else (0.0, 1.0, 0.0))
+        sensor = mi.load_dict({
+            "type": "perspective", "fov": math.degrees(fov), "fov_axis": "x", "to_world": mi.ScalarTransform4f(rg.c2w_to_mitsuba(c2w).tolist()),
+            "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+        })
+        img = np.array(mi.render(scene, sensor=sensor, integrator=mi.load_dict({"type": "path"}), spp=16))
+        _, d, _ = rg.pixel_rays(c2w, fov, size)
+        ref = lookup_latlong(latlong, torch.as_tensor(d[0] @ rz)).numpy()  # world direction → map direction: R⁻¹ d
+        mirrored = lookup_latlong(latlong, torch.as_tensor((d[0] * [-1, 1, 1]) @ rz)).numpy()
+        err = np.abs(img - ref).mean() / ref.mean()
+        assert err < 0.05, f"rendered environment differs from the SPEC lat-long lookup by {err:.3f} (target {target})"
+        assert np.abs(img - mirrored).mean() / ref.mean() > 2 * err + 0.05 or np.allclose(ref, mirrored, rtol=0.05)
+    # querying the loaded emitter reproduces the input map at SPEC pixel centres
+    scene0 = mi.load_dict({"type": "scene", "env": {"type": "envmap", "bitmap": mi.Bitmap(rg._mitsuba_env_bitmap(env.latlong)),
+                                                    "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], 90)}})
+    built = rg._Built(scene=scene0, shapes=[], info=[], meta={})
+    used = rg.environment_as_used(mi, dr, built, *env.latlong.shape[:2])
+    assert np.abs(used - env.latlong).mean() / env.latlong.mean() < 0.02
+
+
+# ----------------------------------------------------------------------------------------------- render_views smoke
+@needs_mitsuba
+def test_render_views_smoke():
+    env = rg.Environment(latlong=_feature_env(32, 64), source="test")
+    cams = rg.sample_cameras(2, seed=5)
+    res = rg.render_views(rg.GalleryConfig(), cams, env, 24, 4, settings=rg.RenderSettings(progress=False, gt_subsamples=2))
+    assert res["radiance"].shape == (2, 24, 24, 3) and res["radiance"].dtype == np.float32
+    assert np.isfinite(res["radiance"]).all() and res["radiance"].mean() > 0
+    for key, shape, dtype in [("depth", (2, 24, 24), np.float32), ("normal", (2, 24, 24, 3), np.float32), ("albedo", (2, 24, 24, 3), np.float32),
+                              ("roughness", (2, 24, 24), np.float32), ("metallic", (2, 24, 24), np.float32),
+                              ("semantic", (2, 24, 24), np.uint8), ("metal", (2, 24, 24), np.uint8)]:
+        assert res[key].shape == shape and res[key].dtype == dtype, key
+    sem = res["semantic"]
+    assert set(np.unique(sem)) <= {0, 1, 2, 3, 4, 5, 6, 255} and (sem == 4).any()
+    assert ((res["depth"] > 0) == (sem != 255)).mean() > 0.99
+    with pytest.raises(ValueError, match="spp"):
+        rg.render_views(rg.GalleryConfig(), cams, env, 24, 0)
+
+
+# ------------------------------------------------------------------------------------------- (b) the committed sample
+def _load_split(split: str) -> dict:
+    return json.loads((SAMPLE / f"transforms_{split}.json").read_text())
+
+
+def _read(path: Path) -> np.ndarray:
+    from toolkit.io import read_map
+
+    return read_map(path)
+
+
+@needs_sample
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_sample_files_and_header(split):
+    meta = _load_split(split)
+    for key in ("camera_angle_x", "fl_x", "fl_y", "cx", "cy", "w", "h", "aabb", "sh", "envmap", "depth_unit_scale_factor", "render", "scene"):
+        assert key in meta, key
+    assert np.asarray(meta["sh"]).shape == (9, 3) and meta["depth_unit_scale_factor"] == 0.001
+    assert meta["fl_x"] == pytest.approx(0.5 * meta["w"] / math.tan(0.5 * meta["camera_angle_x"]))
+    assert len(meta["frames"]) == {"train": 80, "test": 20}[split]
+    keys = ("file_path", "radiance_path", "depth_file_path", "normal_path", "albedo_path", "roughness_path", "metallic_path", "semantic_path", "metal_path")
+    for frame in meta["frames"][:5] + meta["frames"][-2:]:
+        for key in keys:
+            assert (SAMPLE / frame[key]).is_file(), frame[key]
+        sem = _read(SAMPLE / frame["semantic_path"])
+        assert sem.shape == (meta["h"], meta["w"]) and sem.dtype == np.uint8
+        assert set(np.unique(sem)) <= {0, 1, 2, 3, 4, 5, 6, 255}
+        metal = _read(SAMPLE / frame["metal_path"])
+        np.testing.assert_array_equal(metal == 255, np.isin(sem, [1, 6]))
+        assert _read(SAMPLE / frame["depth_file_path"]).dtype == np.uint16
+
+
+@needs_sample
+def test_sample_known_points_land_on_their_labels():
+    checked_corners = checked_sculpture = 0
+    for split in ("train", "test"):
+        meta = _load_split(split)
+        scene = meta["scene"]
+        f, c, size = meta["fl_x"], meta["cx"], meta["w"]
+        corners = np.asarray(scene["painting_corners"])
+        centre = np.asarray(scene["sculpture_center"])[None]
+        for frame in meta["frames"]:
+            c2w = np.asarray(frame["transform_matrix"])
+            sem = _read(SAMPLE / frame["semantic_path"])
+            depth = _read(SAMPLE / frame["depth_file_path"]).astype(np.float64) * meta["depth_unit_scale_factor"]
+            uv, z = _project(c2w, f, c, corners)
+            for (u, v), zc in zip(uv, z):
+                col, row = int(round(u)), int(round(v))
+                if not (4 <= col < size - 4 and 4 <= row < size - 4):
+                    continue
+                if depth[row, col] < zc - 0.10 or sem[row, col] == 2:  # hidden behind the pedestal, or seen through the case
+                    continue
+                assert sem[row, col] in (0, 1), f"{frame['file_path']}: painting corner at ({u:.1f}, {v:.1f}) has label {sem[row, col]}"
+                assert (sem[row - 4 : row + 5, col - 4 : col + 5] == 0).any(), f"{frame['file_path']}: no painting label near its corner"
+                checked_corners += 1
+            uv_s, z_s = _project(c2w, f, c, centre)
+            (u, v), zc = uv_s[0], z_s[0]
+            col, row = int(round(u)), int(round(v))
+            if 0 <= col < size and 0 <= row < size:
+                assert sem[row, col] == 6, f"{frame['file_path']}: sculpture centre at ({u:.1f}, {v:.1f}) has label {sem[row, col]}"
+                assert zc - 0.25 < depth[row, col] < zc, f"{frame['file_path']}: depth {depth[row, col]:.3f} at the sculpture centre ({zc:.3f} m away)"
+                checked_sculpture += 1
+    assert checked_corners >= 100 and checked_sculpture >= 80
+
+
+def _interior(mask: np.ndarray) -> np.ndarray:
+    """Pixels whose 3x3 neighbourhood shares the mask (away from anti-aliased edges)."""
+    m = np.pad(mask, 1)
+    out = np.ones_like(mask)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            out &= m[1 + dr : 1 + dr + mask.shape[0], 1 + dc : 1 + dc + mask.shape[1]]
+    return out
+
+
+@needs_sample
+def test_sample_depth_normals_and_materials_are_consistent():
+    from toolkit.io import read_image
+
+    meta = _load_split("test")
+    scene = meta["scene"]
+    f, c, size = meta["fl_x"], meta["cx"], meta["w"]
+    canvas_y = scene["painting_plane"]["point"][1]
+    corners = np.asarray(scene["painting_corners"])
+    wall_y = scene["wall_plane"]["point"][1]
+    rows, cols = np.mgrid[0:size, 0:size]
+    d_cam = np.stack([(cols + 0.5 - c) / f, -(rows + 0.5 - c) / f, -np.ones((size, size))], -1)
+    for frame in meta["frames"]:
+        c2w = np.asarray(frame["transform_matrix"])
+        sem = _read(SAMPLE / frame["semantic_path"])
+        depth = _read(SAMPLE / frame["depth_file_path"]).astype(np.float64) * meta["depth_unit_scale_factor"]
+        points = (d_cam * depth[..., None]) @ c2w[:3, :3].T + c2w[:3, 3]
+        paint = sem == 0
+        assert paint.sum() > 50
+        np.testing.assert_allclose(points[paint][:, 1], canvas_y, atol=3e-3)
+        assert (points[paint][:, 0] > corners[:, 0].min() - 0.01).all() and (points[paint][:, 0] < corners[:, 0].max() + 0.01).all()
+        assert (points[paint][:, 2] > corners[:, 2].min() - 0.01).all() and (points[paint][:, 2] < corners[:, 2].max() + 0.01).all()
+        np.testing.assert_allclose(points[sem == 5][:, 2], 0.0, atol=3e-3)
+        np.testing.assert_allclose(points[sem == 4][:, 1], wall_y, atol=3e-3)
+        normal = read_image(SAMPLE / frame["normal_path"]) * 2.0 - 1.0
+        for label, expected in [(4, (0.0, -1.0, 0.0)), (5, (0.0, 0.0, 1.0)), (0, (0.0, -1.0, 0.0))]:
+            inner = _interior(sem == label)
+            if inner.any():
+                assert np.abs(normal[inner] - expected).max() < 0.02, f"{frame['file_path']}: normals of label {label}"
+        albedo = read_image(SAMPLE / frame["albedo_path"])
+        wall = _interior(sem == 4)
+        np.testing.assert_allclose(albedo[wall], np.broadcast_to(scene["materials"]["wall"]["base_color"], albedo[wall].shape), atol=1.0 / 255)
+        rough = read_image(SAMPLE / frame["roughness_path"])[..., 0]
+        metallic = read_image(SAMPLE / frame["metallic_path"])[..., 0]
+        np.testing.assert_allclose(rough[_interior(paint)], 0.8, atol=1.0 / 255)
+        np.testing.assert_allclose(metallic[_interior(paint)], 0.0, atol=1.0 / 255)
+        sculpt = _interior(sem == 6)
+        np.testing.assert_allclose(metallic[sculpt], 1.0, atol=1.0 / 255)
+        np.testing.assert_allclose(rough[sculpt], 0.2, atol=1.0 / 255)
+
+
+@needs_sample
+def test_sample_images_are_well_exposed():
+    from toolkit.io import read_image
+
+    meta = _load_split("train")
+    means = [read_image(SAMPLE / fr["file_path"]).mean() for fr in meta["frames"][::8]]
+    assert 0.3 < float(np.mean(means)) < 0.55
+    hdr = read_image(SAMPLE / meta["frames"][0]["radiance_path"])
+    png = read_image(SAMPLE / meta["frames"][0]["file_path"])
+    from toolkit.io import linear_to_srgb
+
+    assert np.abs(linear_to_srgb(np.clip(hdr, 0, 1)) - png).mean() < 0.01
+
+
+# ------------------------------------------------------------------------------------------------------- (c) GT SH
+@needs_sample
+def test_sample_sh_equals_projection_of_envmap():
+    from toolkit.sh import fit_sh_probe, read_envmap
+
+    meta = _load_split("train")
+    sh = torch.as_tensor(meta["sh"], dtype=torch.float64)
+    fresh = fit_sh_probe(read_envmap(SAMPLE / meta["envmap"])).coeffs.double()
+    assert (sh[0] > 0).all()
+    torch.testing.assert_close(fresh, sh, atol=0.02 * float(sh[0].max()), rtol=0)
+    assert _load_split("test")["sh"] == meta["sh"]
