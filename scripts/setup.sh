@@ -6,7 +6,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV=.venv
-STAMP="$VENV/.installed-$(cat requirements.txt pyproject.toml | sha256sum | cut -c1-16)"
+STAMP="$VENV/.installed-$(cat requirements.txt pyproject.toml tools/package-lock.json toolkit/csrc/*.cpp 2>/dev/null | sha256sum | cut -c1-16)"
 [ -f "$STAMP" ] && exit 0
 
 APT_PKGS="libgomp1 libatomic1 libx11-6 libgl1 libopengl0 libegl1 libegl-mesa0 libgl1-mesa-dri libllvm19"
@@ -14,6 +14,7 @@ missing=""
 for p in $APT_PKGS; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "ok installed" || missing="$missing $p"
 done
+command -v node >/dev/null 2>&1 || missing="$missing nodejs npm"
 if [ -n "$missing" ]; then
   echo "[setup] installing apt packages:$missing"
   SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
@@ -43,5 +44,9 @@ assert torch.__version__.startswith("2.13.0"), f"wrong torch {torch.__version__}
 import open3d, cv2, onnxruntime, kornia, pymeshlab, fast_simplification, moderngl  # noqa: F401
 print(f"[setup] ok: torch {torch.__version__}, kornia {kornia.__version__}, open3d {open3d.__version__}")
 PY
+echo "[setup] building the CPU hash-grid kernel (once, ~1 min)"
+"$VENV/bin/python" -c "from toolkit.encoding import hashgrid_kernel; import sys; sys.exit(0 if hashgrid_kernel() else 1)" \
+  || echo "[setup] warning: kernel build failed; training falls back to the plain-torch encoding (slower)"
+bash scripts/setup_node.sh || echo "[setup] warning: node packages (glTF validator, three.js) not installed"
 rm -f "$VENV"/.installed-*
 touch "$STAMP"

@@ -109,12 +109,35 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("-n", type=int, default=6, help="number of views")
     q.set_defaults(func=cmd_contact_sheet)
 
+    from . import _cli_train
+
+    _cli_train.add_parser(sub)
     for register in _REGISTRARS:
         register(sub)
     return p
 
 
-_REGISTRARS: list[Callable[[argparse._SubParsersAction], None]] = []
+_COMMAND_MODULES: tuple[tuple[str, str], ...] = (
+    ("_cli_priors", "priors"),  # weights, segment, colour, light; sh-probe from _cli_sh
+    ("_cli_asset", "mesh, bake, export-asset"),
+)
+"""Modules that register subcommands with ``add_parser(subparsers)``, imported lazily so one broken optional
+dependency cannot take the whole CLI down."""
+
+
+def _register_modules(sub: argparse._SubParsersAction) -> None:
+    import importlib
+
+    for module, commands in _COMMAND_MODULES:
+        try:
+            mod = importlib.import_module(f".{module}", __package__)
+        except ImportError as e:
+            print(f"dars: {commands!r} unavailable ({e})", file=sys.stderr)
+            continue
+        mod.add_parser(sub)
+
+
+_REGISTRARS: list[Callable[[argparse._SubParsersAction], None]] = [_register_modules]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -24,6 +24,7 @@ __all__ = [
     "read_image",
     "read_map",
     "write_png",
+    "encode_png",
     "write_json",
     "write_hdr",
     "read_hdr",
@@ -131,8 +132,8 @@ def read_map(path: str | os.PathLike, what: str = "map") -> np.ndarray:
     return img
 
 
-def write_png(path: str | os.PathLike, image_hwc: np.ndarray, bits: int = 8) -> None:
-    """Write an image (float in [0, 1] or integer) as PNG, atomically. ``bits`` is 8 or 16 for float input."""
+def encode_png(image_hwc: np.ndarray, bits: int = 8) -> bytes:
+    """PNG bytes of an image (float in [0, 1] or integer; RGB(A) or grey). ``bits`` is 8 or 16 for float input."""
     cv2 = _cv2()
     img = np.asarray(image_hwc)
     if img.dtype.kind == "f":
@@ -146,9 +147,15 @@ def write_png(path: str | os.PathLike, image_hwc: np.ndarray, bits: int = 8) -> 
         img = img[..., [2, 1, 0, 3]]
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
     if not ok:
-        raise OSError(f"could not encode PNG for {path}")
+        raise OSError(f"could not encode a PNG of shape {list(np.shape(image_hwc))}")
+    return buf.tobytes()
+
+
+def write_png(path: str | os.PathLike, image_hwc: np.ndarray, bits: int = 8) -> None:
+    """Write an image (float in [0, 1] or integer) as PNG, atomically. ``bits`` is 8 or 16 for float input."""
+    data = encode_png(image_hwc, bits)
     with atomic_write(path) as f:
-        f.write(buf.tobytes())
+        f.write(data)
 
 
 def read_hdr(path: str | os.PathLike) -> np.ndarray:

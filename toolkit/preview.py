@@ -91,3 +91,42 @@ def contact_sheet(scene: Scene, out: Path, n: int = 6) -> Path:
         rows.append(row)
     write_png(out, tile(rows))
     return out
+
+
+def render_output_images(outputs: dict[str, torch.Tensor], srgb: bool = True) -> dict[str, np.ndarray]:
+    """Turn :func:`toolkit.pipeline.render_image` outputs into displayable H-W-3 float images in [0, 1].
+
+    ``rgb``/``albedo``/``diffuse``/``specular`` are linear and shown through the sRGB transfer (when ``srgb``);
+    ``roughness``/``metallic``/``opacity`` as grey; ``normal`` as (n+1)/2; ``semantic`` from the argmax of the
+    logits (black where opacity < 0.5); ``depth`` through a colour map; ``samples`` (samples per ray) likewise.
+    """
+    def to_np(t):
+        return t.detach().float().cpu().numpy()
+
+    enc = linear_to_srgb if srgb else (lambda x: x)
+    imgs: dict[str, np.ndarray] = {}
+    for k in ("rgb", "albedo", "diffuse", "specular"):
+        if k in outputs:
+            imgs[k] = np.clip(enc(np.clip(to_np(outputs[k]), 0, None)), 0, 1)
+    for k in ("roughness", "metallic", "opacity"):
+        if k in outputs:
+            imgs[k] = np.repeat(np.clip(to_np(outputs[k]), 0, 1)[..., None], 3, -1)
+    op = to_np(outputs["opacity"]) if "opacity" in outputs else None
+    if "normal" in outputs:
+        n = to_np(outputs["normal"])
+        img = (n + 1) * 0.5
+        imgs["normal"] = img if op is None else img * (op[..., None] > 0.5)
+    if "semantic_logits" in outputs:
+        lab = to_np(outputs["semantic_logits"]).argmax(-1)
+        if op is not None:
+            lab = np.where(op > 0.5, lab, UNLABELLED)
+        imgs["semantic"] = colourise_labels(lab)
+    if "depth" in outputs:
+        d = to_np(outputs["depth"])
+        valid = (op > 0.5) if op is not None else np.isfinite(d)
+        lo = float(d[valid].min()) if valid.any() else 0.0
+        hi = float(d[valid].max()) if valid.any() else 1.0
+        imgs["depth"] = np.where(valid[..., None], colourise_scalar(d, lo, hi, "viridis"), 0.0)
+    if "samples" in outputs:
+        imgs["samples"] = colourise_scalar(to_np(outputs["samples"]), 0, None, "magma")
+    return imgs

@@ -143,6 +143,16 @@ class Frame:
     distortion: tuple[float, ...] | None = None
     native_size: tuple[int, int] | None = None
 
+    @property
+    def key(self) -> str:
+        """A file-name-safe identifier of the frame, stable across runs (``train/r_000.png`` -> ``train__r_000``).
+
+        Prior stages name their per-frame outputs ``<key>.<ext>`` under ``<scene dir>/priors/<stage>/``.
+        """
+        stem = str(Path(self.name).with_suffix("")) if Path(self.name).suffix.lower() in (
+            ".png", ".jpg", ".jpeg", ".exr", ".hdr", ".npy") else self.name
+        return "".join(c if c.isalnum() or c in "-_." else "__" if c in "/\\" else "_" for c in stem).lstrip("._")
+
 
 @dataclass(frozen=True)
 class Scene:
@@ -196,6 +206,23 @@ class Scene:
 
     def has_extra(self, name: str) -> bool:
         return name in self.extras_available()
+
+    @property
+    def root(self) -> Path:
+        """The scene directory (``source`` itself for a directory, else the folder holding the file)."""
+        return self.source if self.source.is_dir() else self.source.parent
+
+    def priors_dir(self, stage: str) -> Path:
+        """Where prior stages write their outputs for this scene: ``<root>/priors/<stage>``.
+
+        For a tiny-NeRF ``.npz`` the folder is named after the file (``<dir>/<stem>.priors/<stage>``) so
+        scenes sharing a directory do not mix. Nothing the user owns lives there.
+        """
+        if self.source.suffix.lower() == ".npz":
+            return self.source.parent / f"{self.source.stem}.priors" / stage
+        if self.meta.get("format") == "colmap":
+            return Path(self.meta["model"]).parent / "priors" / stage
+        return self.root / "priors" / stage
 
     def subset(self, indices: Sequence[int]) -> "Scene":
         """The same scene restricted to some frames (still lazy)."""
@@ -421,8 +448,8 @@ def generate_rays(
     ``camera_indices`` (a list of cameras; every pixel of each, row-major) or nothing (every pixel of every
     camera). Rays are allocated on the cameras' device.
 
-    Ray bounds: ``near``/``far`` when given (the file's), else the intersection with ``aabb`` (entry clamped
-    to ``near_min``), else ``[near_min, 1e3]``.
+    Ray bounds: the intersection with ``aabb`` (entry clamped to ``near_min``), further limited to
+    ``[near, far]`` when those are given (the file's); without a box ``[near, far]`` or ``[near_min, 1e3]``.
 
     Example:
         >>> rays = generate_rays(scene.cameras, [0], aabb=scene.aabb)  # all pixels of camera 0
@@ -457,6 +484,9 @@ def generate_rays(
     if near is not None and far is not None:
         n = torch.full_like(pu, float(near))
         f = torch.full_like(pu, float(far))
+        if aabb is not None:  # the file's bounds, clipped to the scene box (nothing is modelled outside it)
+            bn, bf = intersect_aabb(origins, directions, aabb, near_min)
+            n, f = torch.maximum(n, bn), torch.minimum(f, bf)
     elif aabb is not None:
         n, f = intersect_aabb(origins, directions, aabb, near_min)
     else:

@@ -1,0 +1,124 @@
+import json
+
+import pytest
+import torch
+
+from synthetic import make_scene
+from toolkit._checks import ConfigError, DarsError
+from toolkit.io import linear_to_srgb
+from toolkit.metrics import psnr
+from toolkit.pipeline import render_image
+from toolkit.scene import load_scene
+from toolkit.train import TrainingDiverged, load_run, make_config, train
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    return make_scene(tmp_path_factory.mktemp("tiny"))
+
+
+def _small(**kw):
+    base = dict(batch_rays=512, ssim_patches=1, log_every=5, checkpoint_every=5, occupancy_resolution=24,
+                occupancy_warmup=16)
+    base.update(kw)
+    return make_config("fast", **base)
+
+
+def _test_psnr(run_dir):
+    run = load_run(run_dir)
+    sc = load_scene(run.scene_path, "test")
+    vals = []
+    for i in range(len(sc)):
+        o = render_image(run.field, sc.cameras, i, run.cfg.render_sampler, run.occupancy, run.l_env, run.background,
+                         sc.aabb, run.cfg.shading, run.dars_for(sc.cameras.c2w[i]))
+        vals.append(float(psnr(linear_to_srgb(o["rgb"].clamp(0, 1)).permute(2, 0, 1), sc.load_image(i))))
+    return sum(vals) / len(vals)
+
+
+def test_resume_reproduces_uninterrupted_run(tiny, tmp_path):
+    cfg = _small(steps=24, pretrain_fraction=0.25, light_period=6, light_steps=2)
+    a = train(tiny, tmp_path / "a", cfg, progress_bar=False, log=lambda m: None)
+    train(tiny, tmp_path / "b", cfg, progress_bar=False, log=lambda m: None, stop_at=11)
+    assert torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)["step"] == 11
+    b = train(tiny, tmp_path / "b", make_config("fast"), resume=True, progress_bar=False, log=lambda m: None)
+    ca, cb = torch.load(a, weights_only=False), torch.load(b, weights_only=False)
+    assert ca["step"] == cb["step"] == 24
+    for k, v in ca["field"].items():
+        assert torch.equal(v, cb["field"][k]), f"parameter {k} differs after resume"
+    assert torch.equal(ca["l_env"], cb["l_env"])
+    assert torch.equal(ca["occupancy"]["density"], cb["occupancy"]["density"])
+
+
+def test_smoke_training_psnr_rises(tiny, tmp_path):
+    run = tmp_path / "run"
+    train(tiny, run, _small(steps=10), progress_bar=False, log=lambda m: None)
+    early = _test_psnr(run)
+    train(tiny, run, _small(steps=300), resume=True, progress_bar=False, log=lambda m: None)
+    late = _test_psnr(run)
+    assert late > early + 3.0 and late > 18.0, (early, late)
+    rows = [json.loads(x) for x in (run / "log.jsonl").read_text().splitlines()]
+    assert rows[-1]["step"] == 300 and "psnr" in rows[-1]
+    assert (run / "loss_curves.png").is_file()
+
+
+def test_baseline_and_ablation_switches_train(tiny, tmp_path):
+    for name, kw in {"nerf": dict(baseline="nerf"), "nodars": dict(dars=False), "nosem": dict(semantics=False),
+                     "fixed": dict(fixed_light=True), "nomat": dict(mat_loss=False)}.items():
+        ck = train(tiny, tmp_path / name, _small(steps=8, **kw), progress_bar=False, log=lambda m: None)
+        assert ck.is_file()
+    cfg = json.loads((tmp_path / "nerf" / "config.json").read_text())["config"]
+    assert cfg["shading"] == "radiance" and cfg["sampler"]["dars"] is False and cfg["losses"]["mat"] == 0.0
+
+
+def test_bad_configs_rejected():
+    with pytest.raises(ConfigError, match="batch_rays=8"):
+        make_config("fast", batch_rays=8)
+    with pytest.raises(ConfigError, match="preset='huge'"):
+        make_config("huge")
+    with pytest.raises(ConfigError, match="baseline='mip'"):
+        make_config("fast", baseline="mip")
+    with pytest.raises(ConfigError, match="light_steps=60 must be < light_period=50"):
+        make_config("fast", light_steps=60)
+    with pytest.raises(ConfigError, match="ssim patches use"):
+        make_config("fast", batch_rays=512, ssim_patches=4)
+
+
+def test_existing_run_not_overwritten_and_length_required(tiny, tmp_path):
+    train(tiny, tmp_path / "r", _small(steps=2), progress_bar=False, log=lambda m: None)
+    with pytest.raises(DarsError, match="already holds a run.*--resume"):
+        train(tiny, tmp_path / "r", _small(steps=2), progress_bar=False, log=lambda m: None)
+    with pytest.raises(ConfigError, match="training length"):
+        train(tiny, tmp_path / "s", make_config("fast"), progress_bar=False, log=lambda m: None)
+
+
+def test_nan_guard_keeps_last_good_checkpoint(tiny, tmp_path, monkeypatch):
+    import toolkit.train as T
+
+    real = T.rgb_l1
+    calls = {"n": 0}
+
+    def poisoned(*a, **k):
+        calls["n"] += 1
+        out = real(*a, **k)
+        return out * float("nan") if calls["n"] > 12 else out
+
+    monkeypatch.setattr(T, "rgb_l1", poisoned)
+    with pytest.raises(TrainingDiverged, match="last good checkpoint is kept"):
+        train(tiny, tmp_path / "n", _small(steps=40, pretrain_fraction=1.0), progress_bar=False, log=lambda m: None)
+    ck = torch.load(tmp_path / "n" / "checkpoint.pt", weights_only=False)
+    assert ck["step"] == 10  # checkpoint_every=5: the last one before the NaN at step 13
+    assert all(torch.isfinite(v).all() for v in ck["field"].values())
+
+
+def test_cli_train_and_render(tiny, tmp_path, capsys):
+    from toolkit.cli import main
+
+    assert main(["train", str(tiny), "--out", str(tmp_path / "c"), "--steps", "4", "--batch-rays", "512",
+                 "--quiet"]) == 0
+    assert main(["render", str(tmp_path / "c"), "--out", str(tmp_path / "img"), "--limit", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    names = {p.rsplit("_", 1)[-1] for p in out["files"]}
+    assert {"rgb.png", "albedo.png", "roughness.png", "metallic.png", "normal.png", "semantic.png",
+            "depth.png"} <= names
+    assert main(["train", str(tiny), "--out", str(tmp_path / "d")]) == 2
+    assert "training length" in capsys.readouterr().err

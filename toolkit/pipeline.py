@@ -1,0 +1,327 @@
+"""The rendering pipeline: rays -> samples (sampling) -> field -> shading -> volume rendering.
+
+:func:`render_rays` is the one place that composes the stages; training, ``dars render``, evaluation, the
+ablations and the ONNX parity check all go through it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from torch import nn
+
+from .field import DarsField, FieldOutputs
+from .render import accumulate_along_rays, render_weights
+from .sampling import (OccupancyGrid, SamplerConfig, average_other_view_weights, coarse_samples, merge_samples,
+                       proposal_weights, ray_budgets, sample_fine, stratified_edges)
+from .scene import Cameras, RayBundle, generate_rays
+from .shading import ShadingConfig, shade_pbr
+
+__all__ = ["Background", "DarsContext", "RenderOutputs", "render_rays", "render_image", "render_dars_context",
+           "RENDER_KEYS"]
+
+RENDER_KEYS = ("rgb", "depth", "opacity", "normal", "albedo", "roughness", "metallic", "semantic_logits",
+               "diffuse", "specular")
+
+
+class Background(nn.Module):
+    """What a ray sees after leaving the scene box.
+
+    Modes: ``constant`` (a fixed colour, e.g. the white of Blender RGBA renders), ``learned`` (one learnable
+    colour) and ``env`` (a learnable low-resolution lat-long radiance map in the SPEC convention, sampled
+    bilinearly by ray direction with gathers — exportable). Values are linear radiance.
+    """
+
+    def __init__(self, mode: Literal["constant", "learned", "env"] = "env", colour=(1.0, 1.0, 1.0),
+                 resolution: tuple[int, int] = (16, 32)):
+        super().__init__()
+        self.mode = mode
+        c = torch.as_tensor(colour, dtype=torch.float32).reshape(3)
+        if mode == "constant":
+            self.register_buffer("colour", c)
+        elif mode == "learned":
+            self.raw = nn.Parameter(torch.logit(c.clamp(0.02, 0.98)))
+        elif mode == "env":
+            h, w = resolution
+            inv = torch.log(torch.expm1(c.clamp_min(1e-4)))  # softplus^-1: the map starts at ``colour``
+            self.raw = nn.Parameter(inv.reshape(1, 1, 3).repeat(h, w, 1))
+        else:
+            raise ValueError(f"background mode {mode!r}: choose constant, learned or env")
+
+    def env_map(self) -> torch.Tensor:
+        """float [h, w, 3] linear radiance lat-long map (``env`` mode)."""
+        return nn.functional.softplus(self.raw)
+
+    def forward(self, directions: torch.Tensor) -> torch.Tensor:
+        """float [R, 3] background radiance for unit directions [R, 3]."""
+        if self.mode == "constant":
+            return self.colour.to(directions).expand(directions.shape[0], 3)
+        if self.mode == "learned":
+            return torch.sigmoid(self.raw).to(directions).expand(directions.shape[0], 3)
+        env = self.env_map()
+        h, w, _ = env.shape
+        z = directions[:, 2].clamp(-1.0, 1.0)
+        theta = torch.acos(z)
+        phi = torch.atan2(directions[:, 0], directions[:, 1]) % (2 * math.pi)
+        # pixel centres at theta = pi (row + 0.5) / h, phi = 2 pi (col + 0.5) / w (SPEC lat-long)
+        r = (theta / math.pi * h - 0.5).clamp(0, h - 1)
+        c = phi / (2 * math.pi) * w - 0.5
+        r0 = r.floor().clamp(max=h - 2).long() if h > 1 else r.long()
+        fr = r - r0
+        c0f = c.floor()
+        fc = c - c0f
+        c0 = c0f.long() % w
+        c1 = (c0 + 1) % w
+        r1 = (r0 + 1).clamp(max=h - 1)
+        flat = env.reshape(-1, 3)
+        v = (flat[r0 * w + c0] * ((1 - fr) * (1 - fc))[:, None] + flat[r0 * w + c1] * ((1 - fr) * fc)[:, None]
+             + flat[r1 * w + c0] * (fr * (1 - fc))[:, None] + flat[r1 * w + c1] * (fr * fc)[:, None])
+        return v
+
+
+@dataclass
+class DarsContext:
+    """What DARS needs at render time (part 3): the training cameras, their weight maps and neighbours."""
+
+    cameras: Cameras
+    weight_maps: torch.Tensor  # [V, H, W]
+    neighbours: torch.Tensor  # [V, k]
+    view_of_ray: torch.Tensor | None = None  # [R] training view index of each ray (None: nearest view)
+
+
+@dataclass
+class RenderOutputs:
+    """Per-ray results (R rays) and a few per-sample values for losses.
+
+    ``rgb``, ``diffuse``, ``specular`` are linear radiance (background composited into ``rgb``; diffuse and
+    specular are premultiplied by opacity); ``depth`` is metres along the camera axis; ``normal`` is unit;
+    ``semantic_logits`` per ray; material maps are per ray (deferred) or opacity-normalised accumulations.
+    """
+
+    rgb: torch.Tensor
+    opacity: torch.Tensor
+    depth: torch.Tensor
+    normal: torch.Tensor
+    semantic_logits: torch.Tensor
+    albedo: torch.Tensor | None
+    roughness: torch.Tensor | None
+    metallic: torch.Tensor | None
+    diffuse: torch.Tensor | None
+    specular: torch.Tensor | None
+    light_residual: torch.Tensor | None
+    """float [R, 9, 3] (deferred) or [S, 9, 3] (per-sample) local light residual."""
+    samples_per_ray: torch.Tensor
+    weights: torch.Tensor
+    """float [S] compositing weights of the packed samples."""
+    sample_points: torch.Tensor
+    sample_ray_indices: torch.Tensor
+    sample_density: torch.Tensor
+    sample_features: torch.Tensor
+    """float [S, D] shared field features of the packed samples."""
+    fine_counts: torch.Tensor
+    deferred: bool
+
+
+def render_dars_context(train_cameras: Cameras, weight_maps: torch.Tensor, c2w: torch.Tensor, k: int) -> DarsContext:
+    """DARS context for rendering a camera with pose ``c2w`` [4, 4]: its ``k`` nearest training views."""
+    o = train_cameras.origins
+    f = -train_cameras.c2w[:, :3, 2]
+    scale = (o - o.mean(0)).norm(dim=-1).mean().clamp_min(1e-6)
+    d = (o - c2w[:3, 3].to(o)).norm(dim=-1) / scale + (1.0 - f @ (-c2w[:3, 2].to(o)))
+    nb = torch.topk(d, min(k, len(train_cameras)), largest=False).indices
+    return DarsContext(train_cameras, weight_maps, nb[None])
+
+
+def _cat_outputs(a: FieldOutputs, b: FieldOutputs, order: torch.Tensor) -> FieldOutputs:
+    out = FieldOutputs(density=torch.cat([a.density, b.density])[order])
+    for k in ("normal", "albedo", "roughness", "metallic", "semantic_logits", "light", "light_residual", "radiance"):
+        va, vb = getattr(a, k), getattr(b, k)
+        if va is not None and vb is not None:
+            setattr(out, k, torch.cat([va, vb])[order])
+    return out
+
+
+def _query(field: DarsField, points, dirs, l_env, mode, deferred: bool):
+    if deferred:
+        sig, h = field.geometry_features(points)
+        return sig, h, None
+    out = field(points, dirs, l_env, mode)
+    return out.density, None, out
+
+
+def render_rays(
+    field: DarsField,
+    rays: RayBundle,
+    sampler: SamplerConfig,
+    occupancy: OccupancyGrid | None,
+    l_env: torch.Tensor | None,
+    background: Background,
+    shading: Literal["pbr", "radiance"] = "pbr",
+    dars: DarsContext | None = None,
+    ray_weights: torch.Tensor | None = None,
+    generator: torch.Generator | None = None,
+    shading_cfg: ShadingConfig = ShadingConfig(),
+    deferred: bool = True,
+) -> RenderOutputs:
+    """Render a batch of rays (differentiable w.r.t. the field, ``l_env`` and the background).
+
+    Two passes: the field's density at the occupied stratified samples gives the hierarchical proposal; fine
+    samples (DARS budgets and along-ray density when enabled) are drawn from it; the union is rendered.
+
+    ``deferred`` (default): only density and the shared feature h are evaluated per sample; the heads run
+    once per ray on h̄ = Σ w h / Σ w and the PBR shading uses the ray's material, normal and local light
+    (for opaque surfaces this equals querying the heads at the surface point). ``deferred=False`` runs the heads
+    and the shading at every sample and composites the shaded colours.
+
+    Args:
+        field: the field.
+        rays: R rays (near/far already set).
+        sampler: sample counts and DARS switches.
+        occupancy: empty-space grid (None: no skipping).
+        l_env: float [9, 3] global SH light (``pbr``).
+        background: background model.
+        shading: ``pbr`` (decomposed: material + SH light) or ``radiance`` (plain NeRF colour head).
+        dars: DARS context (W maps of the training views); needed for the along-ray part when ``sampler.dars``.
+        ray_weights: float [R] W at each ray's pixel (training), for the per-ray budgets; None: uniform budget.
+        generator: RNG for stratified jitter.
+        shading_cfg: options of :func:`toolkit.shading.shade_pbr`.
+        deferred: heads and shading per ray (fast) or per sample.
+    """
+    R = len(rays)
+    n = sampler.n_coarse
+    dev = rays.origins.device
+    mode = "radiance" if shading == "radiance" else "pbr"
+    edges = stratified_edges(rays, n, sampler.perturb, generator)
+    coarse, stratum = coarse_samples(rays, edges, occupancy)
+    pts_c = coarse.points(rays.origins, rays.directions)
+    sig_c, h_c, out_c = _query(field, pts_c, rays.directions[coarse.ray_indices], l_env, mode, deferred)
+    has = torch.zeros(R, dtype=torch.bool, device=dev)
+    has[coarse.ray_indices] = True
+    # ---- fine samples: hierarchical proposal, mixed with W̄ (DARS part 3)
+    counts = torch.zeros(R, dtype=torch.long, device=dev)
+    if sampler.n_fine > 0:
+        pdf = proposal_weights(coarse, stratum, sig_c, n)
+        if sampler.dars and dars is not None and sampler.mix > 0 and coarse.ray_indices.numel():
+            views = dars.view_of_ray if dars.view_of_ray is not None else rays.camera_indices
+            with torch.no_grad():
+                wb = average_other_view_weights(pts_c.detach(), views[coarse.ray_indices].to(dev),
+                                                dars.neighbours, dars.cameras, dars.weight_maps)
+            wbar = torch.zeros(R, n, dtype=pdf.dtype, device=dev)
+            wbar[coarse.ray_indices, stratum] = wb.to(pdf.dtype) + 1e-4  # p0: the occupied strata
+            ps = pdf.sum(-1, keepdim=True)
+            pw = wbar.sum(-1, keepdim=True)
+            pdf = (1 - sampler.mix) * pdf / ps.clamp_min(1e-12) + sampler.mix * wbar / pw.clamp_min(1e-12)
+        idx = torch.nonzero(has).squeeze(-1)
+        if idx.numel():
+            if sampler.dars and ray_weights is not None:
+                counts[idx] = ray_budgets(ray_weights[idx], sampler.n_fine, sampler.tau, sampler.budget_min,
+                                          sampler.budget_max)
+            else:
+                counts[idx] = sampler.n_fine
+        t_f, ray_f = sample_fine(edges, pdf, counts, sampler.perturb, generator)
+    else:
+        t_f = edges.new_zeros(0)
+        ray_f = torch.zeros(0, dtype=torch.long, device=dev)
+    pts_f = rays.origins[ray_f] + t_f[:, None] * rays.directions[ray_f]
+    sig_f, h_f, out_f = _query(field, pts_f, rays.directions[ray_f], l_env, mode, deferred)
+    max_delta = (torch.maximum(rays.far, rays.near) - rays.near) / n
+    samples, order = merge_samples(coarse.t_mids, coarse.ray_indices, t_f, ray_f, R, max_delta, rays.near, rays.far)
+    density = torch.cat([sig_c, sig_f])[order]
+    points = torch.cat([pts_c, pts_f])[order]
+    ri = samples.ray_indices
+    weights, _, _ = render_weights(density, samples.deltas, ri, R)
+    opacity = accumulate_along_rays(weights, None, ri, R)
+    safe = opacity.clamp_min(1e-6)
+    depth = (accumulate_along_rays(weights, samples.t_mids[:, None], ri, R)[:, 0] / safe[:, 0]) * rays.z_scale
+    bg = background(rays.directions)
+    diffuse = specular = albedo = rough = metal = light_res = None
+    if deferred:
+        feats = torch.cat([h_c, h_f])[order]
+        hbar = accumulate_along_rays(weights, feats, ri, R) / safe
+        heads = field.heads(hbar, rays.directions, l_env, mode)
+        normal, logits = heads.normal, heads.semantic_logits
+        if mode == "pbr":
+            sh = heads.light if heads.light is not None else l_env.reshape(1, 9, 3).expand(R, 9, 3)
+            sh_out = shade_pbr(heads.albedo, heads.roughness, heads.metallic, normal, -rays.directions, sh,
+                               shading_cfg)
+            colour = sh_out.colour
+            diffuse, specular = opacity * sh_out.diffuse, opacity * sh_out.specular
+            albedo, rough, metal, light_res = heads.albedo, heads.roughness, heads.metallic, heads.light_residual
+        else:
+            colour = heads.radiance
+        rgb = opacity * colour + (1.0 - opacity) * bg
+    else:
+        feats = points.new_zeros(points.shape[0], 0)
+        out = _cat_outputs(out_c, out_f, order)
+        dirs = rays.directions[ri]
+        if mode == "pbr":
+            sh = out.light if out.light is not None else l_env.reshape(1, 9, 3).expand(ri.shape[0], 9, 3)
+            sh_out = shade_pbr(out.albedo, out.roughness, out.metallic, out.normal, -dirs, sh, shading_cfg)
+            colour = sh_out.colour
+            diffuse = accumulate_along_rays(weights, sh_out.diffuse, ri, R)
+            specular = accumulate_along_rays(weights, sh_out.specular, ri, R)
+            albedo = accumulate_along_rays(weights, out.albedo, ri, R) / safe
+            rough = (accumulate_along_rays(weights, out.roughness[:, None], ri, R) / safe)[:, 0]
+            metal = (accumulate_along_rays(weights, out.metallic[:, None], ri, R) / safe)[:, 0]
+            light_res = out.light_residual
+        else:
+            colour = out.radiance
+        rgb = accumulate_along_rays(weights, colour, ri, R) + (1.0 - opacity) * bg
+        normal = nn.functional.normalize(accumulate_along_rays(weights, out.normal, ri, R), dim=-1, eps=1e-6)
+        logits = accumulate_along_rays(weights, out.semantic_logits, ri, R)
+    return RenderOutputs(rgb=rgb, opacity=opacity[:, 0], depth=depth, normal=normal, semantic_logits=logits,
+                         albedo=albedo, roughness=rough, metallic=metal, diffuse=diffuse, specular=specular,
+                         light_residual=light_res, samples_per_ray=samples.counts(), weights=weights,
+                         sample_points=points, sample_ray_indices=ri, sample_density=density, sample_features=feats,
+                         fine_counts=counts, deferred=deferred)
+
+
+@torch.no_grad()
+def render_image(
+    field: DarsField,
+    cameras: Cameras,
+    index: int,
+    sampler: SamplerConfig,
+    occupancy: OccupancyGrid | None,
+    l_env: torch.Tensor | None,
+    background: Background,
+    aabb: torch.Tensor,
+    shading: Literal["pbr", "radiance"] = "pbr",
+    dars: DarsContext | None = None,
+    chunk: int = 8192,
+    near: float | None = None,
+    far: float | None = None,
+    deferred: bool = True,
+) -> dict[str, torch.Tensor]:
+    """Render every output of camera ``index`` as images.
+
+    ``dars``: a context whose first ``neighbours`` row lists the training views nearest this camera
+    (:func:`render_dars_context`).
+
+    Returns:
+        dict of float tensors [H, W, C] (``rgb``, ``albedo``, ``diffuse``, ``specular``, ``normal``,
+        ``semantic_logits``) or [H, W] (``depth``, ``opacity``, ``roughness``, ``metallic``, ``samples``).
+    """
+    h, w = int(cameras.height[index]), int(cameras.width[index])
+    rays = generate_rays(cameras, [index], aabb=aabb, near=near, far=far)
+    outs: dict[str, list[torch.Tensor]] = {}
+    for i in range(0, len(rays), chunk):
+        sub = rays[i:i + chunk]
+        ctx = None
+        if dars is not None:  # every ray of this image belongs to the one view whose neighbours are row 0
+            ctx = DarsContext(dars.cameras, dars.weight_maps, dars.neighbours[:1],
+                              torch.zeros(len(sub), dtype=torch.long, device=sub.origins.device))
+        r = render_rays(field, sub, sampler, occupancy, l_env, background, shading, ctx, deferred=deferred)
+        for k in RENDER_KEYS:
+            v = getattr(r, k)
+            if v is not None:
+                outs.setdefault(k, []).append(v)
+        outs.setdefault("samples", []).append(r.samples_per_ray.float())
+    result = {}
+    for k, vs in outs.items():
+        v = torch.cat(vs)
+        result[k] = v.reshape(h, w, -1) if v.dim() == 2 else v.reshape(h, w)
+    return result

@@ -1,0 +1,476 @@
+"""Stage 7 — ray and sample selection: occupancy grid, stratified + hierarchical sampling, and DARS.
+
+**Baseline** (``dars=False``): every ray gets ``n_coarse`` stratified samples in [near, far]; those in empty
+cells of the :class:`OccupancyGrid` are skipped; the field's densities at the kept coarse samples give the
+hierarchical proposal from which ``n_fine`` samples per ray are drawn by inverse-CDF sampling; the field is
+rendered on the union (NeRF's coarse + fine scheme with one field).
+
+**DARS** (``dars=True``; SPEC stage 7, paper eqs. 4–7), four parts:
+
+1. *ray selection* — training pixels are drawn with probability ∝ (1 − ρ) + ρ·W(pixel), and each ray carries
+   the importance weight ``(1 / N_pix) / p`` so the loss stays an unbiased estimate of the uniform-pixel loss
+   (:func:`build_ray_sampler`, :func:`select_rays`);
+2. *per-ray budget* — the fine samples of a batch total ``n_fine · R`` (fixed), split ∝ W, clamped to
+   [``budget_min``, ``budget_max``] = [1, 12]; rays with W ≤ τ = 0.7 get at most the uniform share, so the
+   extra samples go only where W > τ (:func:`ray_budgets`);
+3. *along the ray* — p(t) ∝ W̄(r(t)) · p₀(t) where W̄(x) averages W_j(Π_j(x)) over the ``n_neighbours``
+   nearest *other* training views j (depth-dependent: it peaks where the point lands on edges and highlights in
+   other views), p₀ the stratified (occupied) prior; mixed with the hierarchical proposal weights
+   (1 − μ)·w + μ·p and inverted (:func:`average_other_view_weights`, :func:`sample_fine`);
+4. *packing* — samples are packed with ray indices (:class:`toolkit.render.PackedSamples`), never padded.
+
+At render time there is no photo to compute W from: every ray gets the mean budget and part 3 still applies.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ._checks import ConfigError, check_range, check_shape
+from .render import PackedSamples, ray_starts
+from .scene import Cameras, RayBundle
+
+__all__ = [
+    "SamplerConfig",
+    "OccupancyGrid",
+    "stratified_edges",
+    "coarse_samples",
+    "proposal_weights",
+    "sample_fine",
+    "merge_samples",
+    "RaySampler",
+    "build_ray_sampler",
+    "select_rays",
+    "ray_budgets",
+    "neighbour_views",
+    "average_other_view_weights",
+    "projection_matrices",
+]
+
+
+@dataclass(frozen=True)
+class SamplerConfig:
+    """Sample counts and DARS parameters."""
+
+    n_coarse: int = 64
+    """Stratified samples per ray (paper: 64 for training, 128 for testing)."""
+    n_fine: int = 8
+    """Mean hierarchical/DARS samples per ray (the fixed total is ``n_fine`` x rays)."""
+    dars: bool = True
+    """Use DARS ray selection, budgets and along-ray density; False: uniform pixels + hierarchical sampling."""
+    rho: float = 0.5
+    """Ray selection mixes uniform (1 - rho) and W-proportional (rho) pixel probabilities."""
+    tau: float = 0.7
+    """W threshold above which a ray may receive more than the uniform share of samples."""
+    budget_min: int = 1
+    """Fewest fine samples per ray (paper: 1 in flat shadow)."""
+    budget_max: int = 12
+    """Most fine samples per ray (paper: 12 in highlights)."""
+    mix: float = 0.5
+    """Weight μ of the W̄-based density against the hierarchical proposal weights."""
+    n_neighbours: int = 4
+    """Other training views averaged into W̄(x)."""
+    perturb: bool = True
+    """Jitter stratified samples (training); False for deterministic rendering."""
+
+    def __post_init__(self):
+        if self.n_coarse < 2:
+            raise ConfigError(f"n_coarse={self.n_coarse} must be >= 2")
+        if self.n_fine < 0:
+            raise ConfigError(f"n_fine={self.n_fine} must be >= 0")
+        check_range(self.rho, 0.0, 1.0, "rho")
+        check_range(self.tau, 0.0, 1.0, "tau")
+        check_range(self.mix, 0.0, 1.0, "mix")
+        if not 0 <= self.budget_min <= self.budget_max:
+            raise ConfigError(f"need 0 <= budget_min ({self.budget_min}) <= budget_max ({self.budget_max})")
+        if self.dars and not self.budget_min <= self.n_fine <= self.budget_max:
+            raise ConfigError(f"n_fine={self.n_fine} (the mean DARS budget) must lie in "
+                              f"[budget_min, budget_max] = [{self.budget_min}, {self.budget_max}]")
+
+
+# ====================================================================== occupancy grid
+class OccupancyGrid:
+    """A coarse density grid over the scene box used to skip empty space.
+
+    Each cell keeps an exponential moving maximum of the field's density at random points in it
+    (Instant-NGP): ``d ← max(decay · d, σ(x))``. A cell is occupied when ``d · step > threshold`` (the opacity
+    of a fine reference step, Instant-NGP's render step: box diagonal / 1024) or, early on, when it is above
+    the mean. All cells start occupied and stay so during warm-up.
+
+    Args:
+        aabb: float [2, 3] scene box.
+        resolution: cells per axis.
+        step: reference step (metres) that turns density into opacity.
+        threshold: opacity below which a cell counts as empty.
+        decay: EMA decay per update.
+    """
+
+    def __init__(self, aabb: torch.Tensor, resolution: int = 64, step: float = 0.01, threshold: float = 0.01,
+                 decay: float = 0.95):
+        if resolution < 2:
+            raise ConfigError(f"occupancy resolution={resolution} must be >= 2")
+        self.aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3)
+        self.resolution = int(resolution)
+        self.step = float(step)
+        self.threshold = float(threshold)
+        self.decay = float(decay)
+        n = self.resolution ** 3
+        self.density = torch.full((n,), 1e6, device=self.aabb.device)  # "unknown = occupied" until measured
+        self.mask = torch.ones(n, dtype=torch.bool, device=self.aabb.device)
+        self.updates = 0
+
+    def to(self, device) -> "OccupancyGrid":
+        self.aabb, self.density, self.mask = self.aabb.to(device), self.density.to(device), self.mask.to(device)
+        return self
+
+    def state_dict(self) -> dict:
+        return {"aabb": self.aabb.cpu(), "resolution": self.resolution, "step": self.step, "threshold": self.threshold,
+                "decay": self.decay, "density": self.density.cpu(), "mask": self.mask.cpu(), "updates": self.updates}
+
+    @classmethod
+    def from_state_dict(cls, d: dict) -> "OccupancyGrid":
+        g = cls(d["aabb"], d["resolution"], d["step"], d["threshold"], d["decay"])
+        g.density, g.mask, g.updates = d["density"].clone(), d["mask"].clone(), int(d["updates"])
+        return g
+
+    def cell_index(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(flat cell index [N], inside-box mask [N]) of world points [N, 3]."""
+        lo, hi = self.aabb[0].to(points), self.aabb[1].to(points)
+        u = (points - lo) / (hi - lo)
+        inside = ((u >= 0) & (u <= 1)).all(-1)
+        ijk = (u * self.resolution).long().clamp(0, self.resolution - 1)
+        r = self.resolution
+        return ijk[:, 0] * r * r + ijk[:, 1] * r + ijk[:, 2], inside
+
+    def occupied(self, points: torch.Tensor) -> torch.Tensor:
+        """bool [N]: the point is inside the box and its cell is occupied."""
+        idx, inside = self.cell_index(points)
+        return self.mask[idx] & inside
+
+    def cell_centres(self, idx: torch.Tensor) -> torch.Tensor:
+        r = self.resolution
+        ijk = torch.stack([idx // (r * r), (idx // r) % r, idx % r], -1).float()
+        lo, hi = self.aabb[0], self.aabb[1]
+        return lo + (ijk + 0.5) / r * (hi - lo)
+
+    @torch.no_grad()
+    def update(self, density_fn, generator: torch.Generator | None = None, all_cells: bool = False,
+               chunk: int = 262144, warmup: bool = False) -> None:
+        """Refresh cells: all of them (``all_cells``) or a random quarter plus the currently occupied ones.
+        ``density_fn(points [N, 3]) -> [N]``. During ``warmup`` densities are recorded but every cell stays
+        occupied (the field has not learnt where empty space is yet)."""
+        n = self.resolution ** 3
+        dev = self.density.device
+        if all_cells:
+            idx = torch.arange(n, device=dev)
+        else:
+            rand = torch.randint(0, n, (n // 4,), generator=generator, device="cpu").to(dev)
+            occ = torch.nonzero(self.mask).squeeze(-1)
+            if occ.numel() > n // 4:
+                occ = occ[torch.randint(0, occ.numel(), (n // 4,), generator=generator, device="cpu").to(dev)]
+            idx = torch.unique(torch.cat([rand, occ]))
+        cell = (self.aabb[1] - self.aabb[0]) / self.resolution
+        jitter = torch.rand(idx.numel(), 3, generator=generator, device="cpu").to(dev) - 0.5
+        pts = self.cell_centres(idx) + jitter * cell
+        sig = torch.cat([density_fn(pts[i:i + chunk]).float() for i in range(0, pts.shape[0], chunk)])
+        cur = self.density[idx]
+        cur = torch.where(cur >= 1e6, torch.zeros_like(cur), cur)  # first measurement replaces "unknown"
+        self.density[idx] = torch.maximum(cur * self.decay, sig)
+        measured = self.density < 1e6
+        occ_val = self.density * self.step
+        mean = occ_val[measured].mean() if measured.any() else occ_val.new_tensor(0.0)
+        thr = min(float(mean), self.threshold)
+        self.mask = (occ_val > thr) | ~measured
+        if warmup:
+            self.mask = torch.ones_like(self.mask)
+        self.updates += 1
+
+    def occupancy_fraction(self) -> float:
+        return float(self.mask.float().mean())
+
+
+# ====================================================================== stratified + hierarchical
+def stratified_edges(rays: RayBundle, n: int, perturb: bool, generator: torch.Generator | None = None) -> torch.Tensor:
+    """float [R, n + 1] stratum edges in [near, far] per ray (shifted by one random offset per ray when
+    ``perturb``; the first/last strata are clipped to [near, far]). Rays that miss (far <= near) get
+    zero-length strata."""
+    R = len(rays)
+    near = rays.near
+    far = torch.maximum(rays.far, rays.near)
+    u = torch.linspace(0.0, 1.0, n + 1, device=near.device)
+    edges = near[:, None] + (far - near)[:, None] * u[None]
+    if perturb:
+        shift = (torch.rand(R, 1, generator=generator, device="cpu").to(near.device) - 0.5) * (far - near)[:, None] / n
+        edges = torch.minimum(torch.maximum(edges + shift, near[:, None]), far[:, None])
+    return edges
+
+
+def coarse_samples(rays: RayBundle, edges: torch.Tensor, occupancy: OccupancyGrid | None) -> tuple[PackedSamples, torch.Tensor]:
+    """Packed coarse samples in occupied cells.
+
+    Returns:
+        (samples, stratum index [S] of each kept sample within its ray).
+    """
+    R, S1 = edges.shape
+    starts, ends = edges[:, :-1], edges[:, 1:]
+    keep = ends > starts
+    if occupancy is not None:
+        mids = 0.5 * (starts + ends)
+        pts = rays.origins[:, None, :] + mids[..., None] * rays.directions[:, None, :]
+        keep = keep & occupancy.occupied(pts.reshape(-1, 3)).reshape(R, S1 - 1)
+    ray_idx, k = torch.nonzero(keep, as_tuple=True)
+    return PackedSamples(starts[ray_idx, k], ends[ray_idx, k], ray_idx, R), k
+
+
+def proposal_weights(coarse: PackedSamples, stratum: torch.Tensor, densities: torch.Tensor, n_strata: int) -> torch.Tensor:
+    """Dense [R, n_strata] rendering weights of the coarse samples (zero in skipped strata); no gradient."""
+    from .render import render_weights
+
+    with torch.no_grad():
+        w, _, _ = render_weights(densities.detach(), coarse.deltas, coarse.ray_indices, coarse.n_rays)
+        dense = torch.zeros(coarse.n_rays, n_strata, dtype=w.dtype, device=w.device)
+        dense[coarse.ray_indices, stratum] = w
+    return dense
+
+
+def sample_fine(edges: torch.Tensor, pdf: torch.Tensor, counts: torch.Tensor, perturb: bool,
+                generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inverse-CDF sampling of a per-ray piecewise-constant density over the strata.
+
+    Args:
+        edges: float [R, n + 1] stratum edges.
+        pdf: float [R, n] non-negative weights per stratum (rows summing to 0 are treated as uniform).
+        counts: int64 [R] samples to draw per ray (the packed budget).
+        perturb: stratified random ``u`` within each of the ``counts`` equal CDF slices (else slice centres).
+
+    Returns:
+        (t [S_f], ray_indices [S_f]) sorted by ray, then t.
+    """
+    R, n = pdf.shape
+    total = int(counts.sum())
+    if total == 0:
+        z = edges.new_zeros(0)
+        return z, torch.zeros(0, dtype=torch.long, device=edges.device)
+    valid = (edges[:, 1:] > edges[:, :-1]).to(pdf.dtype)
+    p = pdf * valid
+    s = p.sum(-1, keepdim=True)
+    p = torch.where(s > 1e-12, p / s.clamp_min(1e-12), valid / valid.sum(-1, keepdim=True).clamp_min(1.0))
+    cdf = torch.cat([torch.zeros(R, 1, dtype=p.dtype, device=p.device), torch.cumsum(p, -1)], -1)
+    cdf[:, -1] = 1.0
+    ray_idx = torch.repeat_interleave(torch.arange(R, device=edges.device), counts)
+    j = torch.arange(total, device=edges.device) - ray_starts(ray_idx, R)[ray_idx]
+    jitter = torch.rand(total, generator=generator, device="cpu").to(edges.device) if perturb else torch.full((total,), 0.5, device=edges.device)
+    u = ((j.to(p.dtype) + jitter) / counts[ray_idx].to(p.dtype)).clamp(0.0, 1.0 - 1e-6)
+    rows = cdf[ray_idx]
+    k = torch.searchsorted(rows, u[:, None], right=True).squeeze(-1).clamp(1, n) - 1
+    c0 = rows.gather(1, k[:, None]).squeeze(-1)
+    c1 = rows.gather(1, (k + 1)[:, None]).squeeze(-1)
+    e = edges[ray_idx]
+    e0 = e.gather(1, k[:, None]).squeeze(-1)
+    e1 = e.gather(1, (k + 1)[:, None]).squeeze(-1)
+    frac = ((u - c0) / (c1 - c0).clamp_min(1e-12)).clamp(0.0, 1.0)
+    return e0 + frac * (e1 - e0), ray_idx
+
+
+def merge_samples(t_a: torch.Tensor, ray_a: torch.Tensor, t_b: torch.Tensor, ray_b: torch.Tensor, n_rays: int,
+                  max_delta: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> tuple[PackedSamples, torch.Tensor]:
+    """Union of two sets of sample positions, sorted by (ray, t), with Voronoi intervals.
+
+    Each sample's interval reaches half-way to its neighbours on the same ray, at most ``max_delta[ray] / 2``
+    on either side and never beyond [near, far] — so isolated samples represent one coarse step and packed
+    samples split the ray between them.
+
+    Args:
+        t_a, ray_a / t_b, ray_b: float [S_a] / [S_b] positions and int64 ray indices.
+        n_rays: R.
+        max_delta: float [R] longest interval (the coarse step) per ray.
+        near, far: float [R] ray bounds.
+
+    Returns:
+        (samples, order) where ``order`` [S_a + S_b] maps packed positions to indices into cat([a, b]).
+    """
+    t = torch.cat([t_a, t_b])
+    r = torch.cat([ray_a, ray_b])
+    if t.numel() == 0:
+        return PackedSamples(t, t, r, n_rays), torch.zeros(0, dtype=torch.long, device=t.device)
+    # one sort on a float64 key: ray index + normalised depth in [0, 1)
+    span = (far - near).clamp_min(1e-9).double()
+    key = r.double() + ((t.double() - near.double()[r]) / span[r]).clamp(0.0, 1.0 - 1e-9)
+    order = torch.argsort(key)
+    t, r = t[order], r[order]
+    half = 0.5 * max_delta[r]
+    same_prev = torch.cat([torch.zeros(1, dtype=torch.bool, device=t.device), r[1:] == r[:-1]])
+    same_next = torch.cat([r[:-1] == r[1:], torch.zeros(1, dtype=torch.bool, device=t.device)])
+    gap_prev = torch.cat([t.new_zeros(1), t[1:] - t[:-1]])
+    gap_next = torch.cat([t[1:] - t[:-1], t.new_zeros(1)])
+    left = torch.where(same_prev, torch.minimum(0.5 * gap_prev, half), half)
+    right = torch.where(same_next, torch.minimum(0.5 * gap_next, half), half)
+    starts = torch.maximum(t - left, near[r])
+    ends = torch.minimum(t + right, far[r])
+    ends = torch.maximum(ends, starts)
+    return PackedSamples(starts, ends, r, n_rays), order
+
+
+# ====================================================================== DARS: ray selection and budgets
+@dataclass(frozen=True)
+class RaySampler:
+    """Precomputed pixel-selection distribution over all training pixels.
+
+    Attributes:
+        cdf: float64 [P] cumulative probabilities over flattened (view, row, col) pixels.
+        prob: float32 [P] per-pixel probabilities (sum 1).
+        n_pixels: P.
+        shape: (V, H, W).
+    """
+
+    cdf: torch.Tensor
+    prob: torch.Tensor
+    n_pixels: int
+    shape: tuple[int, int, int]
+
+
+def build_ray_sampler(weights: torch.Tensor | None, shape: tuple[int, int, int], rho: float,
+                      valid: torch.Tensor | None = None) -> RaySampler:
+    """Pixel probabilities ∝ (1 − ρ) + ρ·W (uniform when ``weights`` is None or ρ = 0).
+
+    Args:
+        weights: float [V, H, W] DARS weight maps in [0, 1], or None.
+        shape: (V, H, W).
+        rho: mixing weight.
+        valid: bool [V, H, W] pixels that may be drawn (e.g. inside the image mask), or None for all.
+    """
+    V, H, W = shape
+    if weights is None or rho == 0.0:
+        p = torch.ones(V * H * W, dtype=torch.float64)
+    else:
+        check_shape(weights, f"{V} {H} {W}", "weights")
+        p = (1.0 - rho) + rho * weights.reshape(-1).double().clamp(0.0, 1.0)
+    if valid is not None:
+        p = p * valid.reshape(-1).double()
+    total = p.sum()
+    if total <= 0:
+        raise ConfigError("no valid training pixels to sample (all masked out)")
+    p = p / total
+    return RaySampler(cdf=torch.cumsum(p, 0), prob=p.float(), n_pixels=V * H * W, shape=shape)
+
+
+def select_rays(sampler: RaySampler, n: int, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Draw ``n`` pixels (with replacement) from the sampler.
+
+    Returns:
+        (flat pixel indices int64 [n], importance weights float [n] = (1 / P) / p(pixel), mean ≈ 1).
+    """
+    u = torch.rand(n, generator=generator, dtype=torch.float64) * float(sampler.cdf[-1])
+    idx = torch.searchsorted(sampler.cdf, u, right=True).clamp(max=sampler.n_pixels - 1)
+    weight = (1.0 / sampler.n_pixels) / sampler.prob[idx].double().clamp_min(1e-30)
+    return idx, weight.float()
+
+
+def ray_budgets(w: torch.Tensor, mean_budget: int, tau: float, lo: int, hi: int) -> torch.Tensor:
+    """Integer samples per ray ∝ W under a fixed total ``mean_budget · R``, clamped to [lo, hi], and more than
+    the uniform share (``mean_budget``) only where W > τ.
+
+    Args:
+        w: float [R] per-ray weight (W at the ray's pixel), in [0, 1].
+        mean_budget: the uniform share; the total is ``mean_budget * R`` (exactly, when attainable).
+        tau: threshold for extra samples.
+        lo, hi: clamp.
+
+    Returns:
+        int64 [R].
+    """
+    R = w.shape[0]
+    if R == 0:
+        return torch.zeros(0, dtype=torch.long, device=w.device)
+    total = mean_budget * R
+    w_raw = w.float().clamp(0.0, 1.0)
+    cap = torch.where(w_raw > tau, torch.full_like(w_raw, float(hi)), torch.full_like(w_raw, float(min(hi, mean_budget))))
+    w = w_raw + 1e-3  # every ray keeps a share
+    floor_ = torch.full_like(w, float(lo))
+    # Find the scale s with sum(clamp(s * w, lo, cap)) = total (monotone in s: bisection).
+    s_lo, s_hi = 0.0, float(hi) / float(w.min()) + 1.0
+    for _ in range(50):
+        s = 0.5 * (s_lo + s_hi)
+        if float(torch.minimum(torch.maximum(s * w, floor_), cap).sum()) < total:
+            s_lo = s
+        else:
+            s_hi = s
+    real = torch.minimum(torch.maximum(s_hi * w, floor_), cap)
+    base = real.floor()
+    short = int(round(total - float(base.sum())))
+    if short > 0:  # largest remainders first, only where the cap allows
+        frac = torch.where(base < cap, real - base, torch.full_like(real, -1.0))
+        take = torch.topk(frac, min(short, R)).indices
+        base[take] += 1
+    elif short < 0:
+        frac = torch.where(base > floor_, real - base, torch.full_like(real, 2.0))
+        take = torch.topk(-frac, min(-short, R)).indices
+        base[take] -= 1
+    return base.long()
+
+
+# ====================================================================== DARS: along-ray density from other views
+def neighbour_views(cameras: Cameras, k: int) -> torch.Tensor:
+    """int64 [V, k] the ``k`` nearest *other* training views of each view (camera-centre distance plus a
+    viewing-direction term, so views looking elsewhere are not picked)."""
+    V = len(cameras)
+    k = min(k, max(V - 1, 0))
+    if k == 0:
+        return torch.zeros(V, 0, dtype=torch.long)
+    o = cameras.origins
+    f = -cameras.c2w[:, :3, 2]
+    scale = (o - o.mean(0)).norm(dim=-1).mean().clamp_min(1e-6)
+    d = torch.cdist(o, o) / scale + (1.0 - f @ f.T)
+    d.fill_diagonal_(float("inf"))
+    return torch.topk(d, k, largest=False).indices
+
+
+def projection_matrices(cameras: Cameras) -> torch.Tensor:
+    """float [V, 3, 4] matrices P with P [x; 1] = (u·d, v·d, d): pixel coordinates (u, v) in the convention of
+    :mod:`toolkit.scene` (pixel index = floor) and depth d along the optical axis."""
+    c2w = cameras.c2w
+    A = c2w[:, :3, :3].transpose(1, 2)  # R^T
+    b = -(A @ c2w[:, :3, 3:4])[..., 0]  # -R^T o
+    fx, fy, cx, cy = (t[:, None] for t in (cameras.fx, cameras.fy, cameras.cx, cameras.cy))
+    row0 = torch.cat([fx * A[:, 0] - cx * A[:, 2], fx * b[:, 0:1] - cx * b[:, 2:3]], -1)
+    row1 = torch.cat([-fy * A[:, 1] - cy * A[:, 2], -fy * b[:, 1:2] - cy * b[:, 2:3]], -1)
+    row2 = torch.cat([-A[:, 2], -b[:, 2:3]], -1)
+    return torch.stack([row0, row1, row2], 1)
+
+
+def average_other_view_weights(points: torch.Tensor, ray_views: torch.Tensor, neighbours: torch.Tensor,
+                               cameras: Cameras, weight_maps: torch.Tensor,
+                               projections: torch.Tensor | None = None) -> torch.Tensor:
+    """W̄(x): mean of W_j(Π_j(x)) over the neighbour views j of each point's ray view (nearest-pixel lookups —
+    the maps are smooth by construction; views where x falls outside the image or behind the camera are left
+    out; 0 if no neighbour sees it).
+
+    Args:
+        points: float [S, 3] world points.
+        ray_views: int64 [S] row of ``neighbours`` for each point (its ray's training view).
+        neighbours: int64 [V', k] from :func:`neighbour_views`.
+        cameras: the training cameras (all share one image size).
+        weight_maps: float [V, H, W] in [0, 1].
+        projections: float [V, 3, 4] from :func:`projection_matrices` (computed when None).
+
+    Returns:
+        float [S].
+    """
+    S = points.shape[0]
+    if S == 0 or neighbours.shape[1] == 0:
+        return points.new_zeros(S)
+    V, H, W = weight_maps.shape
+    P = projection_matrices(cameras).to(points) if projections is None else projections.to(points)
+    nb = neighbours.to(points.device)[ray_views]  # [S, k]
+    proj = torch.einsum("skij,sj->ski", P[nb][..., :3], points) + P[nb][..., 3]  # [S, k, 3]
+    d = proj[..., 2]
+    ds = d.clamp_min(1e-9)
+    u = torch.floor(proj[..., 0] / ds)
+    v = torch.floor(proj[..., 1] / ds)
+    ok = (d > 1e-6) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    pix = (v.clamp(0, H - 1) * W + u.clamp(0, W - 1)).long()
+    val = weight_maps.reshape(V, -1).to(points)[nb, pix]
+    okf = ok.to(points.dtype)
+    return (val * okf).sum(-1) / okf.sum(-1).clamp_min(1.0)
