@@ -24,6 +24,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--resume", action="store_true", help="continue the run in --out")
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--split", default="train")
+    q.add_argument("--priors", help="directory holding the prior stages' outputs (default: <scene>/priors)")
     q.add_argument("--no-dars", action="store_true", help="ablation: uniform rays + hierarchical sampling")
     q.add_argument("--no-semantics", action="store_true", help="ablation: no semantic guidance")
     q.add_argument("--fixed-light", action="store_true", help="ablation: l_env fixed at its initial value")
@@ -84,7 +85,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         except ValueError as e:
             raise DarsError(f"--snapshots must be comma-separated minutes, got {args.snapshots!r}") from e
     cfg = make_config(args.preset, **overrides)
-    ck = train(args.scene, args.out, cfg, resume=args.resume, split=args.split, progress_bar=not args.quiet)
+    ck = train(args.scene, args.out, cfg, resume=args.resume, split=args.split, progress_bar=not args.quiet,
+               priors_root=args.priors)
     print(f"run: {Path(args.out)}  checkpoint: {ck}")
     return 0
 

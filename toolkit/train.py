@@ -251,39 +251,46 @@ def grey_ambient_sh(mean_linear: float) -> torch.Tensor:
     return sh
 
 
-def _labels_for(scene: Scene, semantics: bool) -> tuple[torch.Tensor | None, str]:
+def _priors_dir(scene: Scene, stage: str, priors_root: Path | None) -> Path:
+    return Path(priors_root) / stage if priors_root is not None else scene.priors_dir(stage)
+
+
+def _labels_for(scene: Scene, semantics: bool, priors_root: Path | None) -> tuple[torch.Tensor | None, str]:
     if not semantics:
         return None, "off"
     if scene.has_extra("semantic"):
         return torch.stack([scene.load_extra(i, "semantic") for i in range(len(scene))]).to(torch.uint8), "provided"
-    d = scene.priors_dir("segment")
+    d = _priors_dir(scene, "segment", priors_root)
     files = [d / f"{f.key}.png" for f in scene.frames]
     if d.is_dir() and all(p.is_file() for p in files):
         from .io import read_map
 
-        labs = [torch.from_numpy(np.asarray(read_map(p, "predicted labels"))[..., 0] if read_map(p).ndim == 3
-                                 else np.asarray(read_map(p))) for p in files]
+        labs = []
+        for p in files:
+            lab = np.asarray(read_map(p, "predicted labels"))
+            labs.append(torch.from_numpy(lab[..., 0] if lab.ndim == 3 else lab))
         return torch.stack(labs).to(torch.uint8), f"predicted ({d})"
     return None, "none"
 
 
-def prepare_data(scene: Scene, cfg: TrainConfig, log=print) -> TrainData:
+def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | Path | None = None) -> TrainData:
     """Load training images and priors (labels, metal mask, W maps, light, colour) for ``scene``.
 
-    Priors come from the scene (provided labels and metal masks) or from ``<scene>/priors/<stage>/`` when the
-    prior stages were run; W maps are computed here when absent. Without any priors: uniform weights, no
-    labels, SH initialised to a grey ambient — training still works.
+    Priors come from the scene (provided labels and metal masks) or from the prior stages' outputs under
+    ``priors_root/<stage>/`` (default ``<scene>/priors/<stage>/``); W maps are computed here when absent. Without
+    any priors: uniform weights, no labels, SH initialised to a grey ambient — training still works.
     """
     from .edges import WeightMapConfig, weight_map
 
+    priors_root = Path(priors_root) if priors_root is not None else None
     images = scene.load_images()
     V, _, H, W = images.shape
-    labels, label_src = _labels_for(scene, cfg.semantics)
+    labels, label_src = _labels_for(scene, cfg.semantics, priors_root)
     metal = None
     if scene.has_extra("metal"):
         metal = torch.stack([scene.load_extra(i, "metal") for i in range(V)])
     priors: dict = {"labels": label_src, "metal": "provided" if metal is not None else "none"}
-    wdir = scene.priors_dir("weights")
+    wdir = _priors_dir(scene, "weights", priors_root)
     wfiles = [wdir / f"{f.key}.npy" for f in scene.frames]
     if wdir.is_dir() and all(p.is_file() for p in wfiles) and cfg.semantics:
         wm = torch.from_numpy(np.stack([np.load(p).astype(np.float32) for p in wfiles]))
@@ -310,13 +317,13 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print) -> TrainData:
         priors["albedo_supervision"] = "ground truth"
     lin = srgb_to_linear(images) if scene.srgb else images
     l_env, l_src = grey_ambient_sh(float(lin.mean())), "grey ambient"
-    light_json = scene.priors_dir("light") / "light.json"
+    light_json = _priors_dir(scene, "light", priors_root) / "light.json"
     if light_json.is_file():
         d = json.loads(light_json.read_text())
         l_env, l_src = torch.tensor(d["coeffs"], dtype=torch.float32).reshape(9, 3), f"light network ({light_json})"
     priors["light"] = l_src
     colour_init = None
-    cjson = scene.priors_dir("colour") / "colour.json"
+    cjson = _priors_dir(scene, "colour", priors_root) / "colour.json"
     if cfg.colour_correction != "off" and cjson.is_file():
         from .colour import ColourTransforms
 
@@ -676,13 +683,15 @@ def _plot_curves(log_path: Path, out: Path) -> None:
 
 
 def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume: bool = False, split: str = "train",
-          progress_bar: bool = True, log=None, stop_at: int | None = None) -> Path:
+          progress_bar: bool = True, log=None, stop_at: int | None = None,
+          priors_root: str | Path | None = None) -> Path:
     """Train on ``scene_path`` into the run directory ``out_dir``; returns the checkpoint path.
 
     With ``resume`` the run continues from ``out_dir/checkpoint.pt`` with the saved config (``cfg`` may only
     raise ``steps``/``minutes``). Without it, an existing run directory with a checkpoint is refused (nothing
     is overwritten). ``stop_at`` ends this call after that step (checkpointed) without changing the run's
-    schedule, so a later ``resume`` continues exactly (time-sliced jobs).
+    schedule, so a later ``resume`` continues exactly (time-sliced jobs). ``priors_root``: where the prior
+    stages wrote their outputs (default: next to the scene); recorded in the run.
     """
     from tqdm import tqdm
 
@@ -699,6 +708,7 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                       minutes=max(cfg.minutes, base.minutes) if cfg.minutes else base.minutes)
         scene_path = saved["scene"]
         split = saved.get("split", split)
+        priors_root = saved.get("priors_root")
     elif ck_path.exists():
         raise DarsError(f"{out} already holds a run (checkpoint.pt); pass --resume to continue it or choose another --out")
     if not cfg.steps and not cfg.minutes:
@@ -708,12 +718,13 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
     scene = load_scene(scene_path, split)
     cfg = resolve_config(cfg, scene)
     out.mkdir(parents=True, exist_ok=True)
-    data = prepare_data(scene, cfg, log)
+    data = prepare_data(scene, cfg, log, priors_root)
     state = init_state(cfg, data)
     if resume:
         load_checkpoint(ck_path, state)
         log(f"[dars] resumed {out} at step {state.step} ({state.elapsed / 60:.1f} min)")
     write_json(cfg_path, {"config": cfg.to_dict(), "scene": str(Path(scene_path).resolve()), "split": split,
+                          "priors_root": str(Path(priors_root).resolve()) if priors_root else None,
                           "priors": data.priors_used, "l_env_init": data.l_env_init.tolist(),
                           "l_env_source": data.l_env_source, "torch": torch.__version__})
     log_path = out / "log.jsonl"
@@ -839,7 +850,7 @@ def load_run(run_dir: str | Path, checkpoint: str | Path | None = None, device: 
     wm = None
     if with_weights and cfg.render_sampler.dars:
         data_cfg = replace(cfg, albedo_supervision=False)
-        wm = prepare_data(scene, data_cfg, log=lambda m: None).weights
+        wm = prepare_data(scene, data_cfg, log=lambda m: None, priors_root=meta.get("priors_root")).weights
     return Run(path=run_dir, cfg=cfg, scene_path=meta["scene"], split=meta.get("split", "train"), field=fld,
                background=bg.to(device), l_env=ck["l_env"].to(device),
                occupancy=OccupancyGrid.from_state_dict(ck["occupancy"]).to(device), train_scene=scene,
