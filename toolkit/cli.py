@@ -120,6 +120,9 @@ def build_parser() -> argparse.ArgumentParser:
 _COMMAND_MODULES: tuple[tuple[str, str], ...] = (
     ("_cli_priors", "priors"),  # weights, segment, colour, light; sh-probe from _cli_sh
     ("_cli_asset", "mesh, bake, export-asset"),
+    ("_cli_view", "view, export-web"),
+    ("_cli_export", "export-onnx, infer"),
+    ("_cli_eval", "eval, ablate"),
 )
 """Modules that register subcommands with ``add_parser(subparsers)``, imported lazily so one broken optional
 dependency cannot take the whole CLI down."""

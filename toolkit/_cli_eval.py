@@ -1,0 +1,114 @@
+"""``dars eval`` (metrics + report of one run) and ``dars ablate`` (Table 6 under one budget)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+from ._checks import DarsError
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    q = sub.add_parser("eval", help="metrics (PSNR, SSIM, FLIP, LPIPS, materials, light, view consistency, ...) "
+                                    "and a Markdown report of a run")
+    q.add_argument("run", help="run directory of `dars train`")
+    q.add_argument("--split", default="test", help="split of the run's scene to evaluate (default: test)")
+    q.add_argument("--json", action="store_true", help="print only the metrics JSON on stdout")
+    q.add_argument("--limit", type=int, default=0, help="evaluate at most N views, evenly spaced (default: all)")
+    q.add_argument("--lpips-weights", help="LPIPS weight file(s)/folder (else $DARS_LPIPS_WEIGHTS; else LPIPS is null)")
+    q.add_argument("--reference-mesh", help="mesh file in the scene's frame: adds the Chamfer distance")
+    q.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes cells for the Chamfer mesh")
+    q.add_argument("--lux-factor", type=float, help="lux per unit of linear luminance (view consistency in lux)")
+    q.add_argument("--checkpoint", help="a snapshot checkpoint instead of the run's last one")
+    q.add_argument("--out", help="output directory (default: RUN/eval)")
+    q.add_argument("--threads", type=int, default=0, help="CPU threads (default: all cores)")
+    q.add_argument("--quiet", action="store_true", help="no progress bar")
+    q.set_defaults(func=cmd_eval)
+
+    q = sub.add_parser("ablate", help="train and evaluate the Table 6 variants under one budget and seed")
+    q.add_argument("scene", help="scene directory or file")
+    q.add_argument("--out", required=True, help="output directory (one run per variant, ablation.json/.md)")
+    q.add_argument("--preset", default="fast", choices=["fast", "paper"])
+    g = q.add_mutually_exclusive_group(required=True)
+    g.add_argument("--minutes", type=float, default=0.0, help="wall-clock training budget per variant")
+    g.add_argument("--steps", type=int, default=0, help="training steps per variant")
+    q.add_argument("--seed", type=int, default=0)
+    from .ablation import VARIANTS
+
+    q.add_argument("--variants", nargs="+", choices=list(VARIANTS), help="subset of variants (default: all six)")
+    q.add_argument("--split", default="test", help="split to evaluate")
+    q.add_argument("--limit", type=int, default=0, help="evaluate at most N views per variant")
+    q.add_argument("--lpips-weights", help="LPIPS weight file(s)/folder")
+    q.add_argument("--batch-rays", type=int, default=0, help="override rays per step (every variant)")
+    q.add_argument("--threads", type=int, default=0, help="CPU threads (default: all cores)")
+    q.add_argument("--json", action="store_true", help="print only ablation.json on stdout")
+    q.add_argument("--quiet", action="store_true", help="no progress bars")
+    q.set_defaults(func=cmd_ablate)
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr)
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from .evaluate import EvalConfig, evaluate_run
+    from .report import headline_text, write_eval_report
+    from .train import load_run
+
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    run_dir = Path(args.run)
+    if not run_dir.is_dir():
+        raise DarsError(f"{run_dir} is not a directory; give the output directory of `dars train SCENE --out RUN`")
+    if args.limit < 0:
+        raise DarsError(f"--limit {args.limit}: give a positive number of views (or 0 for all)")
+    if args.reference_mesh and not Path(args.reference_mesh).is_file():
+        raise DarsError(f"--reference-mesh {args.reference_mesh}: file not found")
+    cfg = EvalConfig(limit=args.limit, lpips_weights=args.lpips_weights, reference_mesh=args.reference_mesh,
+                     mesh_resolution=args.mesh_resolution, lux_factor=args.lux_factor, progress=not (args.quiet or args.json))
+    run = load_run(run_dir, args.checkpoint)
+    result = evaluate_run(run, args.split, cfg, log=_log)
+    out = Path(args.out) if args.out else run_dir / "eval"
+    written = write_eval_report(result, out)
+    doc = result.to_json()
+    if args.json:
+        sys.stdout.write(json.dumps(doc, indent=2) + "\n")
+        return 0
+    print(f"{run_dir} — split '{args.split}', {doc['eval']['views']} views, step {doc['eval']['checkpoint_step']}")
+    print(headline_text(doc, doc["unavailable"]))
+    print(f"wrote {written['metrics']} and {written['report']}")
+    return 0
+
+
+def cmd_ablate(args: argparse.Namespace) -> int:
+    from .ablation import run_ablation
+    from .evaluate import EvalConfig
+    from .report import ABLATION_COLUMNS, format_metric
+
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    if args.steps < 0 or args.minutes < 0 or not (args.steps or args.minutes):
+        raise DarsError("give a positive training budget per variant: --steps N or --minutes M")
+    if args.limit < 0:
+        raise DarsError(f"--limit {args.limit}: give a positive number of views (or 0 for all)")
+    overrides = {"batch_rays": args.batch_rays} if args.batch_rays else {}
+    res = run_ablation(args.scene, args.out, preset=args.preset, minutes=args.minutes, steps=args.steps, seed=args.seed,
+                       variants=args.variants, overrides=overrides,
+                       eval_cfg=EvalConfig(limit=args.limit, lpips_weights=args.lpips_weights), split=args.split,
+                       progress_bar=not (args.quiet or args.json), log=_log)
+    doc = res.to_json()
+    if args.json:
+        sys.stdout.write(json.dumps(doc, indent=2) + "\n")
+        return 0
+    titles = ["variant"] + [t for _, t, _, _ in ABLATION_COLUMNS]
+    rows = [[v["label"]] + [format_metric(k, v["metrics"][k]) for k, _, _, _ in ABLATION_COLUMNS]
+            for v in doc["variants"]]
+    widths = [max(len(r[j]) for r in [titles] + rows) for j in range(len(titles))]
+    for r in [titles] + rows:
+        print("  ".join(c.ljust(w) if j == 0 else c.rjust(w) for j, (c, w) in enumerate(zip(r, widths))))
+    print(f"wrote {Path(args.out) / 'ablation.md'} and {Path(args.out) / 'ablation.json'}")
+    return 0

@@ -1,0 +1,777 @@
+"""Stage 12 — evaluation of a trained run (paper section III.C; Tables 5-6, Figs. 6-8).
+
+:func:`evaluate_run` renders every view of a split with the run's render sampler and computes every metric the data
+supports, with the functions of :mod:`toolkit.metrics` (it never re-implements a metric):
+
+=====================  ===============================================================================================
+key                    definition (computed when ...)
+=====================  ===============================================================================================
+``psnr``               mean over views of the per-view PSNR (dB) of the displayed render (linear → clamp [0, 1] → sRGB
+                       when the scene's images are sRGB) against the stored image. Always.
+``ssim``               mean per-view SSIM, 11x11 Gaussian window, "valid" padding. Images of at least 11x11.
+``flip``               mean per-view LDR-ꟻLIP of the sRGB images (no learned weights). Always.
+``lpips``              mean per-view LPIPS-AlexNet — only with local weights (``EvalConfig.lpips_weights`` or the
+                       ``DARS_LPIPS_WEIGHTS`` variable), never approximated; otherwise null with the reason.
+``albedo_mae``         pooled over the pixels of all views (eq. 34, per channel): rendered linear albedo vs the
+                       scene's ``albedo`` maps, on :func:`toolkit.metrics.material_mask` — labelled pixels that are
+                       not glass (``display``) and not unlabelled, with a ground-truth surface (GT depth > 0) when GT
+                       depth exists. Without GT labels: GT depth > 0, else GT normal ≠ 0, else every pixel.
+                       Needs GT albedo and a decomposed (``pbr``) run.
+``roughness_rmse``     pooled RMSE (eq. 35) of rendered vs GT ``roughness`` on the same mask. Same conditions.
+``env_light_l2``       ``||l_env - sh_gt||_2`` over the 27 SH coefficients (eq. 36): the run's global light vs the
+                       scene's ``sh``. Needs GT SH and a ``pbr`` run (a standard NeRF has no light model).
+``view_consistency``   eqs. 37-38: sample std over K = 10 uniformly spaced views (among the evaluated views in which
+                       the patch is visible) of the mean luminance of one 3D surface patch (see below), in relative
+                       luminance of the *rendered linear* radiance (lux only with ``EvalConfig.lux_factor``). The same
+                       figure for the ground-truth images (sRGB decoded to linear) is reported beside it.
+``normal_mae``         pooled mean angle (degrees) between rendered and GT world normals on GT surface pixels (GT
+                       normal ≠ 0). Needs GT normals.
+``miou``               mean IoU over the 7 classes of the rendered semantics (argmax of the rendered logits, 255
+                       where the rendered opacity < 0.5) against GT labels, pooled over views. Needs GT labels and a
+                       run trained with semantic guidance and labels.
+=====================  ===============================================================================================
+
+**The view-consistency patch.** A square of side ``size`` in a surface plane, projected into each view with
+:func:`toolkit.metrics.patch_masks` (back-facing views get an empty mask; pixels where the depth map is nearer than
+the plane are occluded — GT depth when the split has it, else the render's own depth). Its plane comes from, in order:
+``EvalConfig.patch_centre/patch_normal``; the scene JSON's ``scene.painting_plane`` (the bundled gallery sample:
+the painting's centre and normal, side = half the painting's shorter edge); otherwise it is chosen automatically —
+the surface point and normal *rendered* at the centre pixel of the first evaluated view (from the rendered depth and
+normal; the nearest pixel with opacity ≥ 0.5 when the centre pixel is empty), with a side that spans ~1/8 of that
+image's width.
+
+A :class:`EvalResult` serialises (:meth:`EvalResult.to_json`) to the document ``dars eval`` writes as
+``RUN/eval/metrics.json``: top-level metric keys exactly :data:`METRIC_KEYS` (a number or null), then
+``unavailable`` ({key: reason} for every null), ``per_view``, ``details``, ``training`` and ``eval``.
+
+The ablations (Table 6) train the variants of one trainer under one budget: :mod:`toolkit.ablation`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from ._checks import DarsError
+from .io import linear_to_srgb, srgb_to_linear
+from .metrics import (MetricUnavailable, albedo_mae, env_light_l2, flip, load_lpips_weights, lpips, material_mask,
+                      mean_iou, normal_mae_deg, patch_masks, psnr, roughness_rmse, ssim, uniform_view_indices,
+                      view_consistency)
+from .scene import SEMANTIC_CLASSES, UNLABELLED, Cameras, Scene, load_scene
+
+__all__ = ["METRIC_KEYS", "JSON_SECTIONS", "EvalConfig", "EvalResult", "EvalFigures", "evaluate_run",
+           "training_info", "variant_of", "training_sample_counts", "choose_patch", "chamfer_to_reference"]
+
+METRIC_KEYS: tuple[str, ...] = ("psnr", "ssim", "flip", "lpips", "albedo_mae", "roughness_rmse", "env_light_l2",
+                                "view_consistency", "normal_mae", "miou")
+"""The top-level metric keys of ``metrics.json`` (SPEC, ``dars eval``), in order."""
+
+JSON_SECTIONS: tuple[str, ...] = ("unavailable", "per_view", "details", "training", "eval")
+"""The other top-level keys of ``metrics.json``."""
+
+_PER_VIEW_KEYS = ("psnr", "ssim", "flip", "lpips", "albedo_mae", "roughness_rmse", "normal_mae", "miou")
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Options of :func:`evaluate_run`.
+
+    Attributes:
+        limit: evaluate at most this many views, evenly spaced over the split (0 = all).
+        lpips_weights: LPIPS weight file(s)/folder; None reads ``DARS_LPIPS_WEIGHTS``; without either LPIPS is null.
+        k_views: K of eqs. 37-38 (paper: 10); fewer when fewer views see the patch.
+        patch_centre: view-consistency patch centre, world metres (with ``patch_normal``); None = from the scene
+            JSON or automatic (module docstring).
+        patch_normal: the patch's normal (toward the side it is seen from).
+        patch_size: side of the square patch, metres; None = from the scene/automatic rule.
+        patch_source: how a given patch was chosen (recorded in the report; e.g. by an earlier variant).
+        patch_min_pixels: a view "sees" the patch when its mask has at least this many pixels.
+        lux_factor: lux per unit of linear luminance; when given, view consistency is reported in lux.
+        reference_mesh: a mesh file (PLY/OBJ/...) in the scene's world frame; when given, the field is meshed
+            (marching cubes, :func:`toolkit.mesh.extract_mesh`) and the Chamfer distance is reported under
+            ``details.chamfer``.
+        mesh_resolution: marching-cubes cells along the longest box edge for the Chamfer mesh.
+        chamfer_samples: surface points per mesh for the Chamfer distance.
+        figure_views: test views kept (as images) for the report's grid.
+        weight_views: training views for the W heat maps and sample-count maps (Fig. 7); 0 = none.
+        chunk: rays per render call.
+        progress: progress bar on stderr.
+    """
+
+    limit: int = 0
+    lpips_weights: str | None = None
+    k_views: int = 10
+    patch_centre: tuple[float, float, float] | None = None
+    patch_normal: tuple[float, float, float] | None = None
+    patch_size: float | None = None
+    patch_source: str | None = None
+    patch_min_pixels: int = 4
+    lux_factor: float | None = None
+    reference_mesh: str | None = None
+    mesh_resolution: int = 128
+    chamfer_samples: int = 20000
+    figure_views: int = 4
+    weight_views: int = 3
+    chunk: int = 8192
+    progress: bool = False
+
+    def __post_init__(self):
+        if not isinstance(self.limit, int) or self.limit < 0:
+            raise DarsError(f"EvalConfig.limit={self.limit!r} must be a non-negative integer (0 = every view)")
+        if not isinstance(self.k_views, int) or self.k_views < 2:
+            raise DarsError(f"EvalConfig.k_views={self.k_views!r} must be an integer >= 2 (paper: 10)")
+        if (self.patch_centre is None) != (self.patch_normal is None):
+            raise DarsError("EvalConfig: give patch_centre and patch_normal together (or neither)")
+        if self.patch_size is not None and not (math.isfinite(self.patch_size) and self.patch_size > 0):
+            raise DarsError(f"EvalConfig.patch_size={self.patch_size!r} must be a positive length in metres")
+        if self.lux_factor is not None and not (math.isfinite(self.lux_factor) and self.lux_factor > 0):
+            raise DarsError(f"EvalConfig.lux_factor={self.lux_factor!r} must be a positive number (lux per unit)")
+        if self.mesh_resolution < 8 or self.chamfer_samples < 1 or self.chunk < 1:
+            raise DarsError("EvalConfig: mesh_resolution must be >= 8, chamfer_samples and chunk >= 1")
+        if self.figure_views < 0 or self.weight_views < 0:
+            raise DarsError("EvalConfig: figure_views and weight_views must be >= 0")
+
+
+@dataclass
+class EvalFigures:
+    """Images kept for the report (not serialised). Images are float H-W-3 in [0, 1]; maps float [H, W].
+
+    Attributes:
+        grid: per figure view, ``{"key", "gt", "render", "albedo", "roughness", "metallic", "normal", "semantic",
+            "error"}`` (``error``: float [H, W] mean absolute error of the displayed images; missing maps absent).
+        weights: per training view, ``{"key", "image", "W", "samples", "fine", "w_source"}`` (``samples`` / ``fine``
+            float [H, W]: all / fine samples per ray under the training sampler, DARS budgets when the run has DARS).
+        patch_views: per K view, ``{"key", "render", "mask"}`` (the render with the patch mask, bool [H, W]).
+        log_path: the run's ``log.jsonl`` (training curves).
+    """
+
+    grid: list[dict] = field(default_factory=list)
+    weights: list[dict] = field(default_factory=list)
+    patch_views: list[dict] = field(default_factory=list)
+    log_path: Path | None = None
+
+
+@dataclass
+class EvalResult:
+    """What :func:`evaluate_run` measured.
+
+    Attributes:
+        metrics: {key: float or None} for every key of :data:`METRIC_KEYS`.
+        unavailable: {key: reason} for every None in ``metrics``.
+        per_view: one dict per evaluated view: ``index``, ``key`` and the per-view metrics (None where unavailable).
+        details: supporting figures: ``view_consistency`` (patch, views, per-view means of render and GT, GT std,
+            units), ``miou_per_class``, ``pixels`` (mask sizes of the pooled metrics), ``sampling`` (samples per ray),
+            ``chamfer`` (with a reference mesh), ``definitions``.
+        training: :func:`training_info` of the run.
+        info: run, split, evaluated views, checkpoint step, LPIPS weights used.
+        figures: images for the report (not serialised).
+    """
+
+    metrics: dict[str, float | None]
+    unavailable: dict[str, str]
+    per_view: list[dict]
+    details: dict
+    training: dict
+    info: dict
+    figures: EvalFigures = field(default_factory=EvalFigures, repr=False)
+
+    def to_json(self) -> dict:
+        """The ``metrics.json`` document: :data:`METRIC_KEYS` first, then :data:`JSON_SECTIONS`."""
+        doc: dict[str, Any] = {k: _num(self.metrics.get(k)) for k in METRIC_KEYS}
+        doc["unavailable"] = {k: self.unavailable[k] for k in METRIC_KEYS if doc[k] is None}
+        doc["per_view"] = _clean(self.per_view)
+        doc["details"] = _clean(self.details)
+        doc["training"] = _clean(self.training)
+        doc["eval"] = _clean(self.info)
+        return doc
+
+
+def _num(x) -> float | None:
+    if x is None:
+        return None
+    v = float(x)
+    return v if math.isfinite(v) else None
+
+
+def _clean(obj):
+    """JSON-safe copy: tensors/arrays to lists, non-finite floats to None, paths to strings."""
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, torch.Tensor):
+        return _clean(obj.detach().cpu().tolist())
+    if isinstance(obj, np.ndarray):
+        return _clean(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        return _num(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+# ============================================================================ run description
+def variant_of(cfg) -> str:
+    """Name of the Table 6 variant a :class:`~toolkit.train.TrainConfig` is (``full``, ``no_dars``, ``nerf``, ...);
+    ``custom`` for combinations that are not one of the six."""
+    if cfg.shading == "radiance":
+        return "nerf"
+    off = [name for name, is_off in (("no_dars", not cfg.sampler.dars), ("no_semantics", not cfg.semantics),
+                                     ("fixed_light", cfg.fixed_light), ("no_mat_loss", cfg.losses.mat <= 0)) if is_off]
+    return "full" if not off else off[0] if len(off) == 1 else "custom"
+
+
+def training_info(run) -> dict:
+    """Training facts of a loaded run: steps, minutes, preset, ablation switches, priors, albedo supervision and the
+    last logged training scalars."""
+    cfg = run.cfg
+    priors = dict(run.meta.get("priors", {}))
+    last: dict = {}
+    log_path = Path(run.path) / "log.jsonl"
+    if log_path.is_file():
+        for line in log_path.read_text().splitlines():
+            if line.strip():
+                try:
+                    row = json.loads(line)
+                except json.JSONDecodeError:
+                    continue
+                if row.get("kind") == "train":
+                    last = row
+    return {
+        "steps": int(run.step),
+        "minutes": float(run.elapsed) / 60.0,
+        "preset": cfg.preset,
+        "budget": {"steps": int(cfg.steps), "minutes": float(cfg.minutes)},
+        "seed": int(cfg.seed),
+        "variant": variant_of(cfg),
+        "switches": {"dars": bool(cfg.sampler.dars), "semantics": bool(cfg.semantics),
+                     "fixed_light": bool(cfg.fixed_light), "mat_loss": bool(cfg.losses.mat > 0),
+                     "baseline": "nerf" if cfg.shading == "radiance" else None, "shading": cfg.shading},
+        "priors": priors,
+        "l_env_source": run.meta.get("l_env_source"),
+        "albedo_supervision": bool(cfg.albedo_supervision and "albedo_supervision" in priors),
+        "field": cfg.field.encoding,
+        "batch_rays": int(cfg.batch_rays),
+        "render_samples": {"n_coarse": cfg.render_sampler.n_coarse, "n_fine": cfg.render_sampler.n_fine},
+        "scene": run.scene_path,
+        "last_log": {k: v for k, v in last.items() if k not in ("kind",)},
+    }
+
+
+# ============================================================================ pieces
+def _device_of(run) -> torch.device:
+    return next(run.field.parameters()).device
+
+
+def _render_view(run, cameras: Cameras, i: int, chunk: int) -> dict[str, torch.Tensor]:
+    from .pipeline import render_image
+
+    out = render_image(run.field, cameras, i, run.cfg.render_sampler, run.occupancy, run.l_env, run.background,
+                       run.train_scene.aabb.to(cameras.device), run.cfg.shading, run.dars_for(cameras.c2w[i]),
+                       chunk=chunk, near=run.train_scene.near, far=run.train_scene.far, deferred=run.cfg.deferred)
+    return {k: v.detach().float().cpu() for k, v in out.items()}
+
+
+@torch.no_grad()
+def training_sample_counts(run, index: int, chunk: int | None = None) -> dict[str, torch.Tensor]:
+    """Samples per ray the *training* sampler gives every pixel of training view ``index`` (Fig. 7).
+
+    With DARS the fine-sample budget of each ray is ∝ W at its pixel (:func:`toolkit.sampling.ray_budgets`: a fixed
+    total of ``n_fine`` x rays over the image, clamped to [budget_min, budget_max], more than ``n_fine`` only where
+    W > τ) and its fine samples follow W̄ of the neighbouring views; without DARS every ray gets ``n_fine``. Coarse
+    samples in empty space are skipped by the occupancy grid in both cases. (``render_image`` for test views uses
+    uniform budgets: a novel view has no W.) Stratified jitter is off, so the maps are deterministic.
+
+    Returns:
+        ``{"samples": float [H, W] samples per ray (occupied coarse + fine), "fine": float [H, W] fine samples per
+        ray (the budget)}``, CPU.
+    """
+    from .pipeline import DarsContext, render_rays
+    from .sampling import neighbour_views
+    from .scene import generate_rays
+
+    dev = _device_of(run)
+    scene = run.train_scene
+    cams = scene.cameras.to(dev)
+    if not 0 <= index < len(cams):
+        raise DarsError(f"training_sample_counts: view {index} out of range (the run has {len(cams)} training views)")
+    sampler = replace(run.cfg.sampler, perturb=False)
+    h, w = int(cams.height[index]), int(cams.width[index])
+    rays = generate_rays(cams, [index], aabb=scene.aabb.to(dev), near=scene.near, far=scene.far)
+    dars = ray_w = None
+    if sampler.dars and run.weight_maps is not None:
+        wm = run.weight_maps.to(dev)
+        dars = DarsContext(cams, wm, neighbour_views(scene.cameras, sampler.n_neighbours).to(dev))
+        ray_w = wm[index].reshape(-1)
+    chunk = chunk or h * w  # one chunk: the budget is shared over the whole image, as over a training batch
+    total, fine = [], []
+    for s in range(0, len(rays), chunk):
+        sub = rays[s:s + chunk]
+        out = render_rays(run.field, sub, sampler, run.occupancy, run.l_env, run.background, run.cfg.shading, dars,
+                          None if ray_w is None else ray_w[s:s + chunk], deferred=True)
+        total.append(out.samples_per_ray.float().cpu())
+        fine.append(out.fine_counts.float().cpu())
+    return {"samples": torch.cat(total).reshape(h, w), "fine": torch.cat(fine).reshape(h, w)}
+
+
+def _scene_patch(scene: Scene) -> tuple[list[float], list[float], float, str] | None:
+    block = scene.meta.get("scene")
+    if not isinstance(block, dict):
+        return None
+    plane = block.get("painting_plane")
+    if not (isinstance(plane, dict) and "point" in plane and "normal" in plane):
+        return None
+    size = None
+    corners = block.get("painting_corners")
+    if isinstance(corners, list) and len(corners) == 4:
+        c = np.asarray(corners, dtype=np.float64)
+        size = 0.5 * min(np.linalg.norm(c[1] - c[0]), np.linalg.norm(c[3] - c[0]))
+    elif isinstance(block.get("config"), dict) and "painting_size" in block["config"]:
+        size = 0.5 * min(float(v) for v in block["config"]["painting_size"])
+    return ([float(v) for v in plane["point"]], [float(v) for v in plane["normal"]], float(size or 0.3),
+            "scene JSON: scene.painting_plane (painting centre and normal; side = half the painting's shorter edge)")
+
+
+def choose_patch(cameras: Cameras, index: int, depth: torch.Tensor, normal: torch.Tensor, opacity: torch.Tensor,
+                 fraction: float = 0.125) -> tuple[list[float], list[float], float, list[int]]:
+    """Automatic view-consistency patch from a rendered view: the surface point and normal at the centre pixel.
+
+    Args:
+        cameras: the split's cameras.
+        index: the rendered camera.
+        depth: float [H, W] rendered depth, metres along the camera axis.
+        normal: float [H, W, 3] rendered world normals.
+        opacity: float [H, W] rendered opacity; the nearest pixel with opacity >= 0.5 to the image centre is used.
+        fraction: the patch side spans this fraction of the image width at the point's depth.
+
+    Returns:
+        (centre [3], normal [3] facing the camera, side in metres, pixel (u, v)).
+
+    Raises:
+        MetricUnavailable: nothing opaque was rendered in the view.
+    """
+    h, w = depth.shape
+    ok = (opacity >= 0.5) & torch.isfinite(depth) & (depth > 0)
+    if not bool(ok.any()):
+        raise MetricUnavailable(f"view_consistency: view {index} renders no surface (opacity < 0.5 everywhere), so no "
+                                "patch can be chosen automatically; give EvalConfig.patch_centre/patch_normal")
+    vs, us = torch.nonzero(ok, as_tuple=True)
+    d2 = (vs.float() + 0.5 - h / 2) ** 2 + (us.float() + 0.5 - w / 2) ** 2
+    k = int(torch.argmin(d2))
+    v, u = int(vs[k]), int(us[k])
+    c2w = cameras.c2w[index].detach().cpu().double()
+    fx, fy = float(cameras.fx[index]), float(cameras.fy[index])
+    cx, cy = float(cameras.cx[index]), float(cameras.cy[index])
+    z = float(depth[v, u])
+    d_cam = torch.tensor([(u + 0.5 - cx) / fx, -(v + 0.5 - cy) / fy, -1.0], dtype=torch.float64)
+    origin = c2w[:3, 3]
+    point = origin + c2w[:3, :3] @ (d_cam * z)
+    n = normal[v, u].double()
+    if float(n.norm()) < 1e-6:
+        n = -(c2w[:3, :3] @ d_cam)
+    n = n / n.norm()
+    if float(torch.dot(n, origin - point)) < 0:
+        n = -n
+    size = fraction * w * z / fx
+    return point.tolist(), n.tolist(), float(size), [u, v]
+
+
+def chamfer_to_reference(run, reference_mesh: str | Path, resolution: int = 128, samples: int = 20000) -> dict:
+    """Chamfer distance (metres) between the field's marching-cubes mesh and a reference mesh.
+
+    Returns:
+        ``{"value", "mean_ab", "mean_ba", "max", "mean_fraction", "faces", "resolution", "reference"}`` — or
+        ``{"value": None, "reason": ...}`` when the field has no surface at the opacity level.
+    """
+    from .mesh import MeshConfig, extract_mesh, load_mesh, mesh_distance
+    from .train import field_callables
+
+    ref = load_mesh(reference_mesh)
+    density_fn, _ = field_callables(run)
+    mesh = extract_mesh(density_fn, run.train_scene.aabb, MeshConfig(resolution=resolution, progress=False))
+    if mesh.num_faces == 0:
+        return {"value": None, "reason": "the field has no surface at the marching-cubes opacity level (empty mesh)",
+                "reference": str(reference_mesh), "resolution": resolution}
+    d = mesh_distance(mesh, ref, samples=samples)
+    return {"value": d.mean, "mean_ab": d.mean_ab, "mean_ba": d.mean_ba, "max": d.max, "mean_fraction": d.mean_fraction,
+            "faces": mesh.num_faces, "resolution": resolution, "reference": str(reference_mesh), "samples": samples,
+            "units": "metres (symmetric mean point-to-surface distance, toolkit.mesh.mesh_distance)"}
+
+
+def _material_region(scene: Scene, i: int, extras: list[str]) -> tuple[torch.Tensor, str]:
+    depth = scene.load_extra(i, "depth") if "depth" in extras else None
+    if "semantic" in extras:
+        return material_mask(scene.load_extra(i, "semantic"), depth), \
+            "metrics.material_mask: GT-labelled non-glass pixels" + (" with GT depth > 0" if depth is not None else "")
+    if depth is not None:
+        return torch.isfinite(depth) & (depth > 0), "GT depth > 0 (no GT labels)"
+    if "normal" in extras:
+        return scene.load_extra(i, "normal").abs().sum(0) > 0, "GT normal non-zero (no GT labels or depth)"
+    h, w = int(scene.cameras.height[i]), int(scene.cameras.width[i])
+    return torch.ones(h, w, dtype=torch.bool), "every pixel (no GT labels, depth or normals)"
+
+
+def _pool(values: list[tuple[float, int]], kind: str) -> float | None:
+    """Exact pooled value from per-view (value, pixel count) pairs: a pixel-weighted mean, or RMS for RMSE."""
+    vs = [(v, n) for v, n in values if v is not None and n > 0]
+    total = sum(n for _, n in vs)
+    if not total:
+        return None
+    if kind == "rmse":
+        return math.sqrt(sum(v * v * n for v, n in vs) / total)
+    return sum(v * n for v, n in vs) / total
+
+
+def _error_map(pred_disp: torch.Tensor, gt_disp: torch.Tensor) -> np.ndarray:
+    return (pred_disp - gt_disp).abs().mean(0).numpy()
+
+
+# ============================================================================ the stage
+def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: Callable[[str], None] | None = None
+                 ) -> EvalResult:
+    """Render every view of ``split`` and compute every metric the data supports (module docstring).
+
+    Args:
+        run: a loaded run (:func:`toolkit.train.load_run`).
+        split: split of the run's scene to evaluate (``test`` by default).
+        cfg: options (:class:`EvalConfig`).
+        log: callable for progress lines (default: stderr).
+
+    Returns:
+        :class:`EvalResult` (``to_json()`` gives ``metrics.json``).
+
+    Raises:
+        DarsError: ``run`` is not a loaded run, the split is missing or empty, or a patch/LPIPS option is invalid.
+
+    Example:
+        >>> res = evaluate_run(load_run("runs/gallery"), "test", EvalConfig(limit=4))
+        >>> res.metrics["psnr"], res.unavailable.get("lpips")
+    """
+    from tqdm import tqdm
+
+    from .train import Run
+
+    log = log or (lambda m: print(m, file=sys.stderr))
+    if not isinstance(run, Run):
+        raise DarsError(f"evaluate_run: expected a loaded run (toolkit.train.load_run(RUN)), got {type(run).__name__}")
+    scene = load_scene(run.scene_path, split)
+    if len(scene) == 0:
+        raise DarsError(f"evaluate_run: split '{split}' of {run.scene_path} has no views")
+    dev = _device_of(run)
+    cams = scene.cameras.to(dev)
+    n_all = len(scene)
+    views = list(range(n_all)) if not cfg.limit or cfg.limit >= n_all else uniform_view_indices(n_all, cfg.limit)
+    extras = scene.extras_available()
+    pbr = run.cfg.shading == "pbr"
+    h, w = scene.image_size
+    unavailable: dict[str, str] = {}
+
+    # ---- what the data supports (reasons for the nulls)
+    lpips_ok = False
+    try:
+        if min(h, w) < 31:
+            raise MetricUnavailable(f"lpips: images of {h}x{w} px are smaller than AlexNet's 31x31 minimum")
+        load_lpips_weights(cfg.lpips_weights)
+        lpips_ok = True
+    except MetricUnavailable as e:
+        unavailable["lpips"] = str(e)
+    if min(h, w) < 11:
+        unavailable["ssim"] = f"images of {h}x{w} px are smaller than the 11x11 SSIM window"
+    no_mat = "the run has no material decomposition (standard NeRF baseline: radiance shading)"
+    for key, extra, jkey in (("albedo_mae", "albedo", "albedo_path"), ("roughness_rmse", "roughness", "roughness_path"),
+                             ("normal_mae", "normal", "normal_path")):
+        if extra not in extras:
+            unavailable[key] = f"split '{split}' has no ground-truth {extra} maps ('{jkey}' on every frame)"
+        elif key != "normal_mae" and not pbr:
+            unavailable[key] = no_mat
+    sh_gt = scene.sh if scene.sh is not None else run.train_scene.sh
+    if sh_gt is None:
+        unavailable["env_light_l2"] = "the scene has no ground-truth SH lighting ('sh' or 'sh_path' in the transforms JSON)"
+    elif not pbr:
+        unavailable["env_light_l2"] = "the run has no light model (standard NeRF baseline: radiance shading)"
+    labels_src = str(run.meta.get("priors", {}).get("labels", ""))
+    if "semantic" not in extras:
+        unavailable["miou"] = f"split '{split}' has no ground-truth semantic labels ('semantic_path' on every frame)"
+    elif not run.cfg.semantics or labels_src in ("off", "none", ""):
+        unavailable["miou"] = ("the run was trained without semantic supervision (semantic guidance off or no labels), "
+                               "so its semantic head is untrained")
+
+    # ---- the view-consistency patch (may be chosen after the first render)
+    patch = None
+    if cfg.patch_centre is not None:
+        patch = (list(cfg.patch_centre), list(cfg.patch_normal), float(cfg.patch_size or 0.3),
+                 cfg.patch_source or "given (EvalConfig.patch_centre/patch_normal)")
+    else:
+        patch = _scene_patch(scene)
+    if patch is not None and cfg.patch_size is not None:
+        patch = (patch[0], patch[1], float(cfg.patch_size), patch[3])
+    vc_views: list[int] = []
+    vc_keep: dict[int, dict] = {}
+    vc_error: str | None = None
+    patch_pixel = None
+
+    def select_vc_views() -> None:
+        nonlocal vc_views, vc_error
+        gt_depths = None
+        if "depth" in extras:
+            gt_depths = torch.stack([scene.load_extra(i, "depth") for i in views])
+        try:
+            m = patch_masks(scene.cameras, views, patch[0], patch[1], patch[2], depths=gt_depths)
+        except DarsError as e:
+            vc_error = f"view_consistency: invalid patch ({e})"
+            return
+        seen = [v for v, c in zip(views, m.sum(dim=(1, 2)).tolist()) if c >= cfg.patch_min_pixels]
+        if len(seen) < 2:
+            vc_error = (f"view_consistency: the patch ({patch[3]}) is visible (>= {cfg.patch_min_pixels} px) in "
+                        f"{len(seen)} of the {len(views)} evaluated views; need at least 2")
+            return
+        k = min(cfg.k_views, len(seen))
+        vc_views = [seen[j] for j in uniform_view_indices(len(seen), k)]
+
+    if patch is not None:
+        select_vc_views()
+
+    # ---- render and measure
+    grid_views = set(views[j] for j in uniform_view_indices(len(views), min(cfg.figure_views, len(views)))) \
+        if cfg.figure_views else set()
+    per_view: list[dict] = []
+    pooled: dict[str, list[tuple[float, int]]] = {"albedo_mae": [], "roughness_rmse": [], "normal_mae": []}
+    sem_pred, sem_gt = [], []
+    mat_rule = ""
+    samples_mean: list[float] = []
+    figures = EvalFigures(log_path=Path(run.path) / "log.jsonl")
+    log(f"[dars eval] {run.path}: rendering {len(views)} of {n_all} '{split}' views ({h}x{w} px)")
+    bar = tqdm(views, desc="eval", unit="view", file=sys.stderr, disable=not cfg.progress)
+    for i in bar:
+        out = _render_view(run, cams, i, cfg.chunk)
+        rgb_lin = out["rgb"].clamp_min(0.0).permute(2, 0, 1)  # [3, H, W] linear radiance
+        disp = rgb_lin.clamp(0.0, 1.0)
+        pred_disp = linear_to_srgb(disp) if scene.srgb else disp
+        gt_stored = scene.load_image(i)
+        gt_srgb = gt_stored if scene.srgb else linear_to_srgb(gt_stored.clamp(0, 1))
+        pred_srgb = pred_disp if scene.srgb else linear_to_srgb(disp)
+        row: dict[str, Any] = {"index": i, "key": scene.frames[i].key}
+        row["psnr"] = float(psnr(pred_disp, gt_stored))
+        row["ssim"] = float(ssim(pred_disp, gt_stored)) if "ssim" not in unavailable else None
+        row["flip"] = float(flip(pred_srgb.clamp(0, 1), gt_srgb.clamp(0, 1)))
+        row["lpips"] = float(lpips(pred_srgb[None], gt_srgb[None], cfg.lpips_weights)[0]) if lpips_ok else None
+        mask = None
+        if any(k not in unavailable for k in ("albedo_mae", "roughness_rmse")):
+            mask, mat_rule = _material_region(scene, i, extras)
+        for key, extra, fn in (("albedo_mae", "albedo", albedo_mae), ("roughness_rmse", "roughness", roughness_rmse)):
+            row[key] = None
+            if key in unavailable:
+                continue
+            n_px = int(mask.sum())
+            if n_px:
+                pred = out["albedo"].permute(2, 0, 1) if extra == "albedo" else out["roughness"]
+                row[key] = float(fn(pred, scene.load_extra(i, extra), mask))
+            pooled[key].append((row[key], n_px))
+        row["normal_mae"] = None
+        if "normal_mae" not in unavailable:
+            n_gt = scene.load_extra(i, "normal")
+            nmask = torch.isfinite(n_gt).all(0) & (n_gt.abs().sum(0) > 0)
+            if bool(nmask.any()):
+                row["normal_mae"] = float(normal_mae_deg(out["normal"].permute(2, 0, 1), n_gt, nmask))
+            pooled["normal_mae"].append((row["normal_mae"], int(nmask.sum())))
+        row["miou"] = None
+        sem = None
+        if "semantic_logits" in out:
+            sem = out["semantic_logits"].argmax(-1)
+            sem = torch.where(out["opacity"] >= 0.5, sem, torch.full_like(sem, UNLABELLED))
+        if "miou" not in unavailable:
+            gt_lab = scene.load_extra(i, "semantic")
+            v_miou, _ = mean_iou(sem, gt_lab)
+            row["miou"] = v_miou if math.isfinite(v_miou) else None
+            sem_pred.append(sem.to(torch.uint8).reshape(-1))
+            sem_gt.append(gt_lab.to(torch.uint8).reshape(-1))
+        row["samples_per_ray"] = float(out["samples"].mean())
+        samples_mean.append(row["samples_per_ray"])
+        per_view.append(row)
+        # -- automatic patch from the first evaluated view
+        if patch is None and i == views[0]:
+            try:
+                c, nrm, size, patch_pixel = choose_patch(scene.cameras, i, out["depth"], out["normal"], out["opacity"])
+                patch = (c, nrm, float(cfg.patch_size or size),
+                         f"automatic: surface point and normal rendered at pixel {patch_pixel} of view {i} "
+                         f"('{scene.frames[i].key}'), side ~1/8 of the image width")
+                select_vc_views()
+            except MetricUnavailable as e:
+                vc_error = str(e)
+        if i in vc_views:
+            gt_lin = srgb_to_linear(gt_stored) if scene.srgb else gt_stored
+            vc_keep[i] = {"rgb": rgb_lin, "gt": gt_lin, "depth": out["depth"], "display": pred_disp}
+        if i in grid_views:
+            imgs = _display_maps(out, scene.srgb)
+            entry = {"key": scene.frames[i].key, "gt": gt_srgb.permute(1, 2, 0).numpy(),
+                     "render": pred_srgb.permute(1, 2, 0).numpy(), "error": _error_map(pred_disp, gt_stored)}
+            entry.update({k: v for k, v in imgs.items() if k in ("albedo", "roughness", "metallic", "normal",
+                                                                  "semantic") and (pbr or k in ("normal", "semantic"))})
+            figures.grid.append(entry)
+    bar.close()
+
+    # ---- pooled metrics
+    metrics: dict[str, float | None] = {}
+    for key in ("psnr", "ssim", "flip", "lpips"):
+        vals = [r[key] for r in per_view if r[key] is not None and math.isfinite(r[key])]
+        metrics[key] = sum(vals) / len(vals) if vals and key not in unavailable else None
+    pixels = {}
+    for key in ("albedo_mae", "roughness_rmse", "normal_mae"):
+        if key in unavailable:
+            metrics[key] = None
+            continue
+        metrics[key] = _pool(pooled[key], "rmse" if key == "roughness_rmse" else "mean")
+        pixels[key] = sum(n for _, n in pooled[key])
+        if metrics[key] is None:
+            unavailable[key] = "the mask selects no pixel in any evaluated view"
+    metrics["env_light_l2"] = None
+    if "env_light_l2" not in unavailable:
+        metrics["env_light_l2"] = float(env_light_l2(run.l_env.detach().cpu().float(), sh_gt.float()))
+    miou_per_class = None
+    metrics["miou"] = None
+    if "miou" not in unavailable:
+        v, per_class = mean_iou(torch.cat(sem_pred), torch.cat(sem_gt))
+        miou_per_class = dict(zip(SEMANTIC_CLASSES, per_class))
+        if math.isfinite(v):
+            metrics["miou"] = v
+        else:
+            unavailable["miou"] = "no labelled pixel in the evaluated views"
+
+    # ---- view consistency
+    vc_detail, metrics["view_consistency"] = None, None
+    if vc_error is None and patch is not None and vc_views:
+        vc_detail, vc_error = _view_consistency(scene, extras, vc_views, vc_keep, patch, cfg, figures)
+        if vc_detail is not None:
+            metrics["view_consistency"] = vc_detail["value"]
+    if metrics["view_consistency"] is None:
+        unavailable["view_consistency"] = vc_error or "view_consistency: fewer than 2 evaluated views"
+    if patch_pixel is not None and vc_detail is not None:
+        vc_detail["patch"]["pixel"] = patch_pixel
+
+    # ---- Fig. 7: W and samples per ray on a few training views
+    sampling = {"test_mean_samples_per_ray": sum(samples_mean) / len(samples_mean),
+                "test_budget": "uniform: every ray gets n_fine fine samples (no W exists for a novel view)"}
+    if cfg.weight_views:
+        sampling.update(_weight_figures(run, cfg, figures))
+
+    details = {
+        "view_consistency": vc_detail,
+        "miou_per_class": miou_per_class,
+        "pixels": pixels,
+        "sampling": sampling,
+        "chamfer": None,
+        "definitions": {
+            "image_space": "sRGB-encoded display images (render: linear -> clamp [0,1] -> sRGB)" if scene.srgb
+            else "linear images as stored (FLIP/LPIPS on their sRGB encoding)",
+            "material_mask": mat_rule or None,
+            "normal_mask": "GT normal non-zero (surface pixels)",
+            "semantics": "argmax of rendered logits; 255 where rendered opacity < 0.5",
+            "pooling": "psnr/ssim/flip/lpips: mean of per-view values; albedo/roughness/normal: over all masked "
+                       "pixels of all views; miou: one confusion over all views",
+        },
+    }
+    if cfg.reference_mesh:
+        try:
+            details["chamfer"] = chamfer_to_reference(run, cfg.reference_mesh, cfg.mesh_resolution, cfg.chamfer_samples)
+        except DarsError as e:
+            details["chamfer"] = {"value": None, "reason": str(e), "reference": str(cfg.reference_mesh)}
+    for k in list(unavailable):  # reasons read "key: why" in a listing: drop a repeated "key: " prefix
+        while unavailable[k].startswith(f"{k}: "):
+            unavailable[k] = unavailable[k][len(k) + 2:]
+    for k in METRIC_KEYS:
+        if metrics.get(k) is not None and not math.isfinite(metrics[k]):
+            unavailable[k] = f"the value is not finite ({metrics[k]})"
+            metrics[k] = None
+        if metrics.get(k) is None and k not in unavailable:
+            unavailable[k] = "not computed"
+        if metrics.get(k) is not None:
+            unavailable.pop(k, None)
+    info = {"run": str(run.path), "split": split, "views": len(views), "views_in_split": n_all,
+            "view_indices": views, "checkpoint_step": int(run.step), "image_size": [w, h],
+            "ground_truth": extras, "gt_sh": sh_gt is not None,
+            "lpips_weights": (cfg.lpips_weights or "DARS_LPIPS_WEIGHTS") if lpips_ok else None}
+    return EvalResult(metrics=metrics, unavailable=unavailable, per_view=per_view, details=details,
+                      training=training_info(run), info=info, figures=figures)
+
+
+def _display_maps(out: dict[str, torch.Tensor], srgb: bool) -> dict[str, np.ndarray]:
+    from .preview import render_output_images
+
+    keep = {k: v for k, v in out.items() if k in ("rgb", "albedo", "roughness", "metallic", "normal", "semantic_logits",
+                                                    "opacity")}
+    return render_output_images(keep, srgb=srgb)
+
+
+def _view_consistency(scene: Scene, extras: list[str], vc_views: list[int], keep: dict[int, dict], patch, cfg: EvalConfig,
+                      figures: EvalFigures) -> tuple[dict | None, str | None]:
+    """Eqs. 37-38 on the kept K views, for the render and for the ground truth (same masks)."""
+    centre, normal, size, source = patch
+    if "depth" in extras:
+        depths = torch.stack([scene.load_extra(i, "depth") for i in vc_views])
+        occl = "GT depth"
+    else:
+        depths = torch.stack([keep[i]["depth"] for i in vc_views])
+        occl = "rendered depth (no GT depth)"
+    masks = patch_masks(scene.cameras, vc_views, centre, normal, size, depths=depths)
+    images = torch.stack([keep[i]["rgb"] for i in vc_views])
+    gts = torch.stack([keep[i]["gt"] for i in vc_views])
+    try:
+        std, means = view_consistency(images, masks, "linear", cfg.lux_factor)
+        gt_std, gt_means = view_consistency(gts, masks, "linear", cfg.lux_factor)
+    except MetricUnavailable as e:
+        return None, str(e)
+    for k, i in enumerate(vc_views):
+        figures.patch_views.append({"key": scene.frames[i].key, "render": keep[i]["display"].permute(1, 2, 0).numpy(),
+                                    "mask": masks[k].numpy()})
+    units = "lux (lux_factor x relative luminance)" if cfg.lux_factor else \
+        "relative luminance (Rec. 709 Y) of the rendered linear radiance (unclamped); GT: sRGB images decoded to linear"
+    return {"value": float(std), "gt_value": float(gt_std), "k": len(vc_views), "units": units,
+            "lux_factor": cfg.lux_factor, "views": vc_views, "keys": [scene.frames[i].key for i in vc_views],
+            "render_means": means.tolist(), "gt_means": gt_means.tolist(),
+            "pixels": masks.sum(dim=(1, 2)).tolist(), "occlusion": occl,
+            "patch": {"centre": [float(c) for c in centre], "normal": [float(c) for c in normal], "size": float(size),
+                      "source": source}}, None
+
+
+def _weight_figures(run, cfg: EvalConfig, figures: EvalFigures) -> dict:
+    """W overlays and training-sampler sample counts for ``cfg.weight_views`` training views (Fig. 7)."""
+    tr = run.train_scene
+    idx = uniform_view_indices(len(tr), min(cfg.weight_views, len(tr)))
+    if run.weight_maps is not None:
+        wmaps = run.weight_maps[idx].float().cpu()
+        w_source = "the run's W maps (used by its DARS sampler)"
+    else:
+        from .edges import WeightMapConfig, weight_map
+
+        imgs = tr.load_images(idx)
+        labels = torch.stack([tr.load_extra(i, "semantic") for i in idx]) if tr.has_extra("semantic") else None
+        metal = torch.stack([tr.load_extra(i, "metal") for i in idx]) if tr.has_extra("metal") else None
+        wmaps = weight_map(imgs, labels, metal, WeightMapConfig()).weights.float().cpu()
+        w_source = "recomputed (the run does not sample by W: DARS off)"
+    stats: dict[str, list[float]] = {k: [] for k in ("mean", "min", "max", "fine_mean", "fine_min", "fine_max")}
+    for k, i in enumerate(idx):
+        c = training_sample_counts(run, i)
+        for name, t in (("", c["samples"]), ("fine_", c["fine"])):
+            stats[f"{name}mean"].append(float(t.mean()))
+            stats[f"{name}min"].append(float(t.min()))
+            stats[f"{name}max"].append(float(t.max()))
+        figures.weights.append({"key": tr.frames[i].key, "image": tr.load_image(i).permute(1, 2, 0).numpy(),
+                                "W": wmaps[k].numpy(), "samples": c["samples"].numpy(), "fine": c["fine"].numpy(),
+                                "w_source": w_source})
+    sc = run.cfg.sampler
+    return {"train_views": [tr.frames[i].key for i in idx], "train_view_indices": idx,
+            "train_mean_samples_per_ray": stats["mean"], "train_min_samples_per_ray": stats["min"],
+            "train_max_samples_per_ray": stats["max"], "train_mean_fine_per_ray": stats["fine_mean"],
+            "train_min_fine_per_ray": stats["fine_min"], "train_max_fine_per_ray": stats["fine_max"],
+            "train_budget": (f"DARS: fine samples per ray ∝ W, clamped to [{sc.budget_min}, {sc.budget_max}], above "
+                             f"{sc.n_fine} only where W > {sc.tau}, fixed total {sc.n_fine} x rays") if sc.dars
+            else f"uniform: {sc.n_fine} fine samples per ray", "w_source": w_source}
