@@ -1,0 +1,538 @@
+"""Stage 15a — moderngl preview of a baked GLB with the training shading (SPEC stage 15).
+
+The fragment shader calls ``dars_shade_pbr``, generated from :mod:`toolkit.shading` by :mod:`viewers.shading_glsl`
+(a test holds the two together). Per fragment:
+
+* base colour: ``baseColorTexture`` uploaded as ``SRGB8_ALPHA8`` (hardware sRGB → linear before filtering) times
+  ``baseColorFactor``; ORM: G roughness, B metallic (times the factors); tangent-space normal map decoded with the
+  GLB's TANGENT (xyz re-orthogonalised against the interpolated normal, bitangent ``w · cross(n, t)``) — the frame
+  :mod:`toolkit.bake` encodes with. Textures sample trilinearly with clamp-to-edge, as the GLB's sampler says.
+* Geometry is drawn as stored (glTF +y up); the camera is rotated into that frame (:mod:`viewers.camera`) and the
+  shading normal and view direction are rotated back to the dars world (+z up) where the SH lives.
+* Output: ``lit`` = linear radiance × 2^exposure → clamp → sRGB; ``albedo`` = base colour in sRGB; ``roughness`` /
+  ``metallic`` = the value as grey; ``normals`` = world normal ``(n + 1)/2`` (as :func:`toolkit.preview.colourise_normals`);
+  ``semantics`` = :data:`toolkit.preview.LABEL_COLOURS` per semantic primitive (unlabelled black). Background: the SH
+  environment's radiance along each view ray (``lit``) or a flat grey; alpha is 1 on the mesh, 0 elsewhere (the
+  coverage mask of :class:`PreviewImage`).
+* No MSAA offscreen (one sample per pixel centre, like the field's renderer); the window asks for 4x MSAA.
+
+Headless rendering uses ``moderngl.create_standalone_context(backend="egl", require=330)`` (Mesa llvmpipe on CPU).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from export.gltf import WORLD_TO_GLTF, GltfAsset, load_glb
+from toolkit._checks import ConfigError, DarsError, SceneError
+from toolkit.shading import ShadingConfig
+
+from .camera import ViewCamera, default_camera, gltf_c2w
+from .shading_glsl import DFG_UNIFORM, GLSL_VERSION, dfg_texture_bytes, glsl_shading_source
+
+__all__ = ["MODES", "Mode", "PreviewConfig", "PreviewImage", "PreviewRenderer", "OffscreenPreview",
+           "create_headless_context", "render_preview", "resolve_asset_path"]
+
+Mode = Literal["lit", "albedo", "roughness", "metallic", "normals", "semantics"]
+MODES: tuple[str, ...] = ("lit", "albedo", "roughness", "metallic", "normals", "semantics")
+
+
+@dataclass(frozen=True)
+class PreviewConfig:
+    """Options of a preview render."""
+
+    mode: Mode = "lit"
+    """What to show (module docstring)."""
+    exposure: float = 0.0
+    """Exposure in stops for ``lit``: colour × 2^exposure before the sRGB transfer."""
+    background: Literal["sh", "colour"] = "sh"
+    """``sh``: the environment's SH radiance behind the mesh in ``lit`` mode; ``colour``: ``background_colour``."""
+    background_colour: tuple[float, float, float] = (0.08, 0.08, 0.08)
+    """Display (sRGB) colour of the background when not drawing the SH environment."""
+    shading: ShadingConfig = field(default_factory=ShadingConfig)
+    """Shading options (the same dataclass the trainer uses)."""
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ConfigError(f"mode={self.mode!r} is not valid: choose one of {', '.join(MODES)}")
+        if self.background not in ("sh", "colour"):
+            raise ConfigError(f"background={self.background!r} is not valid: choose 'sh' or 'colour'")
+        if not np.isfinite(self.exposure):
+            raise ConfigError(f"exposure={self.exposure} must be finite")
+
+
+@dataclass(frozen=True)
+class PreviewImage:
+    """Result of :func:`render_preview`.
+
+    Attributes:
+        image: uint8 [H, W, 3] sRGB display image, row 0 at the top.
+        mask: bool [H, W] pixels covered by the mesh.
+        camera: the camera rendered.
+        mode: the mode rendered.
+    """
+
+    image: np.ndarray
+    mask: np.ndarray
+    camera: ViewCamera
+    mode: str
+
+    def to_float(self) -> np.ndarray:
+        """float32 [H, W, 3] in [0, 1]."""
+        return self.image.astype(np.float32) / 255.0
+
+
+def create_headless_context(require: int = 330):
+    """A standalone moderngl context on EGL (no display needed; Mesa llvmpipe without a GPU).
+
+    Raises:
+        DarsError: when no EGL/OpenGL 3.3 context can be created, saying which system packages provide it.
+    """
+    import moderngl
+
+    try:
+        return moderngl.create_standalone_context(backend="egl", require=require)
+    except Exception as e:  # moderngl raises plain Exception subclasses from glcontext
+        raise DarsError(f"could not create a headless OpenGL {require // 100}.{require % 100 // 10} context on EGL "
+                        f"({e}); install libegl1 libegl-mesa0 libgl1-mesa-dri (scripts/setup.sh does) or run "
+                        "under `xvfb-run -a`") from e
+
+
+def resolve_asset_path(path: str | Path) -> Path:
+    """A ``.glb`` / ``.gltf`` file, or a directory holding ``scene.glb`` (the output of ``dars export-asset``).
+
+    Raises:
+        SceneError: nothing loadable at ``path``.
+    """
+    path = Path(path)
+    if path.is_dir():
+        if (path / "scene.glb").is_file():
+            return path / "scene.glb"
+        raise SceneError(f"{path} is a directory without scene.glb; give a .glb file or the --out directory of "
+                         "`dars export-asset RUN --out DIR`")
+    if not path.is_file():
+        raise SceneError(f"asset not found: {path} (give a .glb/.gltf file or an export-asset directory)")
+    if path.suffix.lower() not in (".glb", ".gltf"):
+        raise SceneError(f"{path}: expected a .glb or .gltf file")
+    return path
+
+
+# ============================================================================================================ shaders
+_MESH_VS = """
+uniform mat4 u_view_proj;   // clip from glTF frame
+in vec3 in_position;        // glTF frame (+y up), metres
+in vec3 in_normal;
+in vec4 in_tangent;
+in vec2 in_uv;
+out vec3 v_position;
+out vec3 v_normal;
+out vec4 v_tangent;
+out vec2 v_uv;
+void main() {
+    v_position = in_position;
+    v_normal = in_normal;
+    v_tangent = in_tangent;
+    v_uv = in_uv;
+    gl_Position = u_view_proj * vec4(in_position, 1.0);
+}
+"""
+
+_MESH_FS = """
+uniform sampler2D u_base_color;   // sRGB texture: reads linear
+uniform sampler2D u_orm;          // R occlusion, G roughness, B metallic (linear)
+uniform sampler2D u_normal_map;   // tangent space, (n + 1) / 2
+uniform vec4 u_base_factor;
+uniform vec2 u_metal_rough_factor;
+uniform float u_normal_scale;
+uniform bool u_has_tangents;
+uniform bool u_double_sided;
+uniform vec3 u_camera_pos;        // glTF frame
+uniform mat3 u_gltf_to_world;
+uniform vec3 u_sh[9];             // SPEC radiance SH, world frame
+uniform int u_mode;               // 0 lit, 1 albedo, 2 roughness, 3 metallic, 4 normals, 5 semantics
+uniform float u_exposure_scale;
+uniform vec3 u_label_colour;
+in vec3 v_position;
+in vec3 v_normal;
+in vec4 v_tangent;
+in vec2 v_uv;
+out vec4 out_colour;
+
+void main() {
+    vec3 N = normalize(v_normal);
+    if (u_double_sided && !gl_FrontFacing) N = -N;
+    vec3 n = N;
+    if (u_has_tangents) {
+        vec3 T = v_tangent.xyz - N * dot(N, v_tangent.xyz);
+        float tl = length(T);
+        if (tl > 1e-6) {
+            T /= tl;
+            vec3 B = cross(N, T) * (v_tangent.w < 0.0 ? -1.0 : 1.0);
+            vec3 nt = texture(u_normal_map, v_uv).xyz * 2.0 - 1.0;
+            nt.xy *= u_normal_scale;
+            vec3 p = T * nt.x + B * nt.y + N * nt.z;
+            float pl = length(p);
+            n = pl > 1e-6 ? p / pl : N;
+        }
+    }
+    vec3 n_world = normalize(u_gltf_to_world * n);
+    vec3 v_world = normalize(u_gltf_to_world * (u_camera_pos - v_position));
+    vec4 base = texture(u_base_color, v_uv) * u_base_factor;
+    vec3 orm = texture(u_orm, v_uv).rgb;
+    float roughness = clamp(orm.g * u_metal_rough_factor.y, 0.0, 1.0);
+    float metallic = clamp(orm.b * u_metal_rough_factor.x, 0.0, 1.0);
+    vec3 albedo = clamp(base.rgb, 0.0, 1.0);
+    vec3 display;
+    if (u_mode == 0) {
+        DarsShading s = dars_shade_pbr(albedo, roughness, metallic, n_world, v_world, u_sh);
+        display = dars_linear_to_srgb(clamp(s.colour * u_exposure_scale, 0.0, 1.0));
+    } else if (u_mode == 1) {
+        display = dars_linear_to_srgb(albedo);
+    } else if (u_mode == 2) {
+        display = vec3(roughness);
+    } else if (u_mode == 3) {
+        display = vec3(metallic);
+    } else if (u_mode == 4) {
+        display = n_world * 0.5 + 0.5;
+    } else {
+        display = u_label_colour;
+    }
+    out_colour = vec4(display, 1.0);
+}
+"""
+
+_BACKGROUND_VS = """
+in vec2 in_pos;
+out vec2 v_ndc;
+void main() { v_ndc = in_pos; gl_Position = vec4(in_pos, 1.0, 1.0); }
+"""
+
+_BACKGROUND_FS = """
+uniform mat4 u_inv_view_proj;     // glTF frame from clip
+uniform mat3 u_gltf_to_world;
+uniform vec3 u_sh[9];
+uniform float u_exposure_scale;
+uniform bool u_use_sh;
+uniform vec3 u_colour;
+in vec2 v_ndc;
+out vec4 out_colour;
+void main() {
+    if (!u_use_sh) { out_colour = vec4(u_colour, 0.0); return; }
+    vec4 a = u_inv_view_proj * vec4(v_ndc, -1.0, 1.0);
+    vec4 b = u_inv_view_proj * vec4(v_ndc, 1.0, 1.0);
+    vec3 d = normalize(u_gltf_to_world * (b.xyz / b.w - a.xyz / a.w));  // the light arriving from d
+    vec3 radiance = max(dars_sh_eval(u_sh, dars_sh_basis(d)), vec3(0.0));
+    out_colour = vec4(dars_linear_to_srgb(clamp(radiance * u_exposure_scale, 0.0, 1.0)), 0.0);
+}
+"""
+
+_MODE_INDEX = {m: i for i, m in enumerate(MODES)}
+_SRGB8_ALPHA8 = 0x8C43
+
+
+def _set(prog, name: str, value) -> None:
+    """Set a uniform if the linker kept it (unused uniforms are optimised away)."""
+    if name in prog:
+        prog[name].value = value
+
+
+def _write_mat(prog, name: str, m: np.ndarray) -> None:
+    if name in prog:
+        prog[name].write(np.ascontiguousarray(np.asarray(m, dtype=np.float64).T, dtype=np.float32).tobytes())
+
+
+def _label_runs(labels: np.ndarray | None, n_faces: int) -> list[tuple[int, int, int]]:
+    """(first face, face count, label) runs of equal labels in face order (primitives are contiguous)."""
+    if labels is None or n_faces == 0:
+        return [(0, n_faces, 255)]
+    change = np.flatnonzero(np.diff(labels.astype(np.int64))) + 1
+    starts = np.concatenate([[0], change])
+    ends = np.concatenate([change, [n_faces]])
+    return [(int(s), int(e - s), int(labels[s])) for s, e in zip(starts, ends)]
+
+
+class PreviewRenderer:
+    """GPU resources of one asset in a moderngl context, and the draw calls (module docstring).
+
+    Args:
+        ctx: a moderngl context (window or standalone).
+        asset: a loaded GLB (:func:`export.gltf.load_glb`).
+        sh: float [9, 3] SPEC radiance SH, world frame (default: :func:`viewers.lighting.resolve_sh`'s choice).
+        shading: the shading compiled up front (others are compiled on first use: ``PreviewConfig.shading``).
+    """
+
+    def __init__(self, ctx, asset: GltfAsset, sh: np.ndarray | None = None,
+                 shading: ShadingConfig = ShadingConfig()) -> None:
+        import moderngl
+
+        from toolkit.preview import LABEL_COLOURS
+
+        from .lighting import resolve_sh
+
+        self.ctx = ctx
+        self.asset = asset
+        self._label_colours = LABEL_COLOURS
+        self._objects: list = []
+        # ---- geometry (glTF frame, as stored)
+        pos = np.asarray(asset.positions_gltf, dtype=np.float32)
+        n_vert = pos.shape[0]
+        if asset.normals is not None:
+            nrm = (asset.normals.astype(np.float64) @ WORLD_TO_GLTF.T).astype(np.float32)
+        else:
+            from toolkit.mesh import compute_vertex_normals
+
+            nrm = compute_vertex_normals(pos.astype(np.float64), asset.faces).astype(np.float32)
+        self.has_tangents = asset.tangents is not None and asset.uvs is not None
+        if self.has_tangents:
+            tan = np.concatenate([asset.tangents[:, :3].astype(np.float64) @ WORLD_TO_GLTF.T,
+                                  asset.tangents[:, 3:4]], 1).astype(np.float32)
+        else:
+            tan = np.zeros((n_vert, 4), np.float32)
+        uv = asset.uvs.astype(np.float32) if asset.uvs is not None else np.zeros((n_vert, 2), np.float32)
+        interleaved = np.concatenate([pos, nrm, tan, uv], 1).astype(np.float32)
+        self.vbo = self._keep(ctx.buffer(interleaved.tobytes()))
+        faces = np.asarray(asset.faces, dtype=np.uint32)
+        self.num_faces = int(faces.shape[0])
+        self.ibo = self._keep(ctx.buffer(faces.tobytes()))
+        self.runs = _label_runs(asset.face_labels, self.num_faces)
+        self.quad = self._keep(ctx.buffer(np.array([-1, -1, 3, -1, -1, 3], np.float32).tobytes()))
+        self._pipelines: dict[ShadingConfig, tuple] = {}
+        self._pipeline(shading)  # compile the default now: shader errors surface at construction
+        # ---- material
+        mat = (asset.json.get("materials") or [{}])[0]
+        pbr = mat.get("pbrMetallicRoughness", {})
+        self.base_factor = tuple(float(x) for x in pbr.get("baseColorFactor", (1.0, 1.0, 1.0, 1.0)))
+        self.metal_rough_factor = (float(pbr.get("metallicFactor", 1.0)), float(pbr.get("roughnessFactor", 1.0)))
+        self.normal_scale = float((mat.get("normalTexture") or {}).get("scale", 1.0))
+        self.double_sided = bool(mat.get("doubleSided", False))
+        images = asset.images
+        self.base_color = self._texture(images.get("base_color"), np.array([188, 188, 188], np.uint8), srgb=True)
+        self.orm = self._texture(images.get("orm"), np.array([255, 255, 0], np.uint8))
+        self.normal_map = self._texture(images.get("normal"), np.array([128, 128, 255], np.uint8))
+        size, blob = dfg_texture_bytes()
+        self.dfg = self._keep(ctx.texture(size, 2, blob, dtype="f4"))
+        self.dfg.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self.dfg.repeat_x = self.dfg.repeat_y = False
+        if sh is None:
+            sh, _ = resolve_sh(asset)
+        self.set_sh(sh)
+
+    # ------------------------------------------------------------------------------------------------ resources
+    def _keep(self, obj):
+        self._objects.append(obj)
+        return obj
+
+    def _texture(self, image: np.ndarray | None, default_rgb: np.ndarray, srgb: bool = False):
+        import moderngl
+
+        if image is None:
+            image = default_rgb.reshape(1, 1, 3)
+        img = np.asarray(image)
+        if img.dtype != np.uint8:
+            raise SceneError(f"GLB texture has dtype {img.dtype}; the viewer reads 8-bit PNG/JPEG textures")
+        if img.ndim == 2:
+            img = np.repeat(img[..., None], 3, axis=2)
+        rgb = img[..., :3]
+        rgba = np.concatenate([rgb, np.full(rgb.shape[:2] + (1,), 255, np.uint8)], 2)
+        h, w = rgba.shape[:2]
+        tex = self._keep(self.ctx.texture((w, h), 4, np.ascontiguousarray(rgba).tobytes(),
+                                          internal_format=_SRGB8_ALPHA8 if srgb else None))
+        tex.build_mipmaps()
+        tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        tex.repeat_x = tex.repeat_y = False
+        return tex
+
+    def _pipeline(self, shading: ShadingConfig) -> tuple:
+        """(mesh program, mesh VAO, background program, background VAO) for a shading config (compiled once)."""
+        if shading not in self._pipelines:
+            ctx = self.ctx
+            src = glsl_shading_source(shading)
+            mesh = self._keep(ctx.program(vertex_shader=GLSL_VERSION + _MESH_VS,
+                                          fragment_shader=GLSL_VERSION + src + _MESH_FS))
+            bg = self._keep(ctx.program(vertex_shader=GLSL_VERSION + _BACKGROUND_VS,
+                                        fragment_shader=GLSL_VERSION + src + _BACKGROUND_FS))
+            vao = self._keep(ctx.vertex_array(
+                mesh, [(self.vbo, "3f 3f 4f 2f", "in_position", "in_normal", "in_tangent", "in_uv")],
+                index_buffer=self.ibo, index_element_size=4))
+            bg_vao = self._keep(ctx.vertex_array(bg, [(self.quad, "2f", "in_pos")]))
+            self._pipelines[shading] = (mesh, vao, bg, bg_vao)
+        return self._pipelines[shading]
+
+    def set_sh(self, sh: np.ndarray) -> None:
+        """Swap the SH light (relighting): float [9, 3] SPEC radiance SH, world frame (used from the next frame)."""
+        from .lighting import _check_sh
+
+        self.sh = _check_sh(sh, "set_sh")
+
+    def release(self) -> None:
+        """Free every GPU object (the context stays)."""
+        for obj in reversed(self._objects):
+            obj.release()
+        self._objects.clear()
+
+    # ------------------------------------------------------------------------------------------------ drawing
+    def render(self, camera: ViewCamera, cfg: PreviewConfig = PreviewConfig(), framebuffer=None) -> None:
+        """Draw one frame into ``framebuffer`` (default: the context's current one) with viewport = camera size."""
+        import moderngl
+
+        ctx = self.ctx
+        fbo = framebuffer if framebuffer is not None else ctx.fbo
+        fbo.use()
+        fbo.viewport = (0, 0, camera.width, camera.height)
+        view_proj = camera.view_projection_gltf()
+        gltf_to_world = WORLD_TO_GLTF.T
+        exposure_scale = float(2.0 ** cfg.exposure)
+        p, vao, bg, bg_vao = self._pipeline(cfg.shading)
+        sh_value = [tuple(float(v) for v in row) for row in self.sh]
+        use_sh = cfg.mode == "lit" and cfg.background == "sh"
+        ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        _write_mat(bg, "u_inv_view_proj", np.linalg.inv(view_proj))
+        _write_mat(bg, "u_gltf_to_world", gltf_to_world)
+        _set(bg, "u_exposure_scale", exposure_scale)
+        _set(bg, "u_use_sh", use_sh)
+        _set(bg, "u_colour", tuple(float(c) for c in cfg.background_colour))
+        _set(bg, "u_sh", sh_value)
+        bg_vao.render(moderngl.TRIANGLES)
+
+        ctx.enable(moderngl.DEPTH_TEST)
+        if self.double_sided:
+            ctx.disable(moderngl.CULL_FACE)
+        else:
+            ctx.enable(moderngl.CULL_FACE)
+            ctx.front_face = "ccw"
+            ctx.cull_face = "back"
+        _write_mat(p, "u_view_proj", view_proj)
+        _write_mat(p, "u_gltf_to_world", gltf_to_world)
+        _set(p, "u_camera_pos", tuple(float(x) for x in gltf_c2w(camera.c2w)[:3, 3]))
+        _set(p, "u_base_factor", self.base_factor)
+        _set(p, "u_metal_rough_factor", self.metal_rough_factor)
+        _set(p, "u_normal_scale", self.normal_scale)
+        _set(p, "u_has_tangents", bool(self.has_tangents))
+        _set(p, "u_double_sided", self.double_sided)
+        _set(p, "u_mode", _MODE_INDEX[cfg.mode])
+        _set(p, "u_exposure_scale", exposure_scale)
+        _set(p, "u_sh", sh_value)
+        for unit, (name, tex) in enumerate((("u_base_color", self.base_color), ("u_orm", self.orm),
+                                            ("u_normal_map", self.normal_map), (DFG_UNIFORM, self.dfg))):
+            tex.use(unit)
+            _set(p, name, unit)
+        if cfg.mode == "semantics":
+            for first, count, label in self.runs:
+                colour = self._label_colours[label] if label < len(self._label_colours) else np.zeros(3)
+                _set(p, "u_label_colour", tuple(float(c) for c in colour))
+                vao.render(moderngl.TRIANGLES, vertices=count * 3, first=first * 3)
+        else:
+            vao.render(moderngl.TRIANGLES, vertices=self.num_faces * 3)
+        ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+
+
+# ============================================================================================================ offscreen
+class OffscreenPreview:
+    """A headless context + renderer + framebuffer for repeated renders (tests, CLI, benchmarks).
+
+    Args:
+        asset: a loaded GLB or a path (:func:`resolve_asset_path`).
+        sh: float [9, 3] light (default: the asset's).
+        ctx: an existing moderngl context (default: a new EGL one, released by :meth:`release`).
+        shading: shading options baked into the shader.
+        renderer: reuse this :class:`PreviewRenderer` (of ``ctx``) instead of uploading the asset again; it is
+            not released by :meth:`release`.
+
+    Example:
+        >>> with OffscreenPreview("out/scene.glb") as view:
+        ...     img = view.render(view.default_camera(320, 240))
+    """
+
+    def __init__(self, asset: GltfAsset | str | Path, sh: np.ndarray | None = None, ctx=None,
+                 shading: ShadingConfig = ShadingConfig(), renderer: PreviewRenderer | None = None) -> None:
+        self.asset = asset if isinstance(asset, GltfAsset) else load_glb(resolve_asset_path(asset))
+        self._own_ctx = ctx is None
+        self.ctx = create_headless_context() if ctx is None else ctx
+        self._own_renderer = renderer is None
+        self.renderer = PreviewRenderer(self.ctx, self.asset, sh, shading) if renderer is None else renderer
+        if renderer is not None and sh is not None:
+            renderer.set_sh(sh)
+        self._fbo = None
+        self._size: tuple[int, int] | None = None
+
+    def __enter__(self) -> "OffscreenPreview":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+    def default_camera(self, width: int = 1280, height: int = 720) -> ViewCamera:
+        """A camera framing the asset (:func:`viewers.camera.default_camera`)."""
+        return default_camera(self.asset.vertices, width, height)
+
+    def _framebuffer(self, width: int, height: int):
+        if self._size != (width, height):
+            if self._fbo is not None:
+                for a in (*self._fbo.color_attachments, self._fbo.depth_attachment, self._fbo):
+                    a.release()
+            colour = self.ctx.texture((width, height), 4)
+            depth = self.ctx.depth_renderbuffer((width, height))
+            self._fbo = self.ctx.framebuffer(color_attachments=[colour], depth_attachment=depth)
+            self._size = (width, height)
+        return self._fbo
+
+    def draw(self, camera: ViewCamera, cfg: PreviewConfig = PreviewConfig()) -> None:
+        """Render without reading back (benchmarks: follow with ``ctx.finish()``)."""
+        self.renderer.render(camera, cfg, self._framebuffer(camera.width, camera.height))
+
+    def render(self, camera: ViewCamera, cfg: PreviewConfig = PreviewConfig()) -> PreviewImage:
+        """Render and read back one image."""
+        self.draw(camera, cfg)
+        raw = self._fbo.read(components=4, alignment=1)
+        rgba = np.frombuffer(raw, np.uint8).reshape(camera.height, camera.width, 4)[::-1]
+        return PreviewImage(np.ascontiguousarray(rgba[..., :3]), rgba[..., 3] > 127, camera, cfg.mode)
+
+    def measure_fps(self, camera: ViewCamera, cfg: PreviewConfig = PreviewConfig(), frames: int = 20,
+                    warmup: int = 2) -> float:
+        """Frames per second of :meth:`draw` + ``glFinish`` (no read-back)."""
+        for _ in range(warmup):
+            self.draw(camera, cfg)
+        self.ctx.finish()
+        t0 = time.perf_counter()
+        for _ in range(frames):
+            self.draw(camera, cfg)
+            self.ctx.finish()
+        return frames / (time.perf_counter() - t0)
+
+    def release(self) -> None:
+        if self._fbo is not None:
+            for a in (*self._fbo.color_attachments, self._fbo.depth_attachment, self._fbo):
+                a.release()
+            self._fbo = None
+            self._size = None
+        if self._own_renderer:
+            self.renderer.release()
+        if self._own_ctx:
+            self.ctx.release()
+
+
+def render_preview(asset: GltfAsset | str | Path, camera: ViewCamera | None = None,
+                   cfg: PreviewConfig = PreviewConfig(), sh: np.ndarray | None = None) -> PreviewImage:
+    """Render one headless preview image of a baked asset (creates and releases an EGL context).
+
+    Args:
+        asset: a loaded GLB, a ``.glb`` path or an ``export-asset`` directory.
+        camera: the view (default: :func:`viewers.camera.default_camera` at 1280 x 720).
+        cfg: mode, exposure, background.
+        sh: float [9, 3] SPEC radiance SH to light with (relighting; default: the asset's).
+
+    Returns:
+        :class:`PreviewImage`.
+
+    Raises:
+        SceneError: the asset cannot be read.
+        DarsError: no headless OpenGL context.
+    """
+    with OffscreenPreview(asset, sh, shading=cfg.shading) as view:
+        return view.render(camera if camera is not None else view.default_camera(), cfg)
