@@ -704,7 +704,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     fx0, fx1, fy0, fy1 = cfg.floor_extent
     header = {
         "camera_angle_x": fov, "fl_x": f, "fl_y": f, "cx": args.size / 2.0, "cy": args.size / 2.0, "w": args.size, "h": args.size,
-        "aabb": [[fx0, fy0, 0.0], [fx1, fy1, cfg.wall_height]],
+        # padded so the wall (y = fy1) and the floor (z = 0) lie inside the box, not on its faces: a surface on a
+        # face competes with the background model for the rays that leave the box there
+        "aabb": [[fx0 - 0.1, fy0 - 0.1, -0.1], [fx1 + 0.1, fy1 + 0.25, cfg.wall_height + 0.2]],
         "sh": sh, "envmap": "env.hdr", "depth_unit_scale_factor": 0.001,
         "render": {
             "renderer": "mitsuba", "mitsuba_version": mi.__version__, "variant": variant, "spp": args.spp, "seed": args.seed,

@@ -50,6 +50,27 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--json", action="store_true")
     q.set_defaults(func=cmd_render)
 
+    q = sub.add_parser("relight", help="re-render with another SH light / HDR probe and per-class material edits")
+    q.add_argument("run", help="run directory of `dars train`")
+    g = q.add_mutually_exclusive_group()
+    g.add_argument("--probe", help="HDR environment (.hdr/.exr, lat-long in the SPEC convention unless --layout)")
+    g.add_argument("--sh", help='JSON with {"coeffs": [[r, g, b] x 9]} (e.g. from `dars priors sh-probe`)')
+    q.add_argument("--layout", default="latlong", choices=["latlong", "angular"])
+    q.add_argument("--probe-rotate-x", type=float, default=0.0, help="rotate a +y-up probe into +z-up (90)")
+    q.add_argument("--intensity", type=float, default=1.0, help="scale the new light")
+    q.add_argument("--residual", default="scale", choices=["scale", "keep", "drop"],
+                   help="what to do with the learnt local light (shadows): scale with the DC ratio, keep, drop")
+    q.add_argument("--edit", action="append", help="material edit CLASS:KEY=VALUE[,...] (repeatable), "
+                                                   "e.g. frame:metallic=0,roughness=0.8")
+    q.add_argument("--out", required=True)
+    q.add_argument("--split", default="test")
+    q.add_argument("--cameras")
+    q.add_argument("--orbit", type=int, default=0)
+    q.add_argument("--checkpoint")
+    q.add_argument("--limit", type=int, default=0)
+    q.add_argument("--json", action="store_true")
+    q.set_defaults(func=cmd_relight)
+
 
 def _threads(n: int) -> None:
     if n > 0:
@@ -116,36 +137,93 @@ def orbit_cameras(scene, n: int):
     return Cameras(torch.stack(c2ws), rep(c.fx), rep(c.fy), rep(c.cx), rep(c.cy), rep(c.width), rep(c.height))
 
 
-def cmd_render(args: argparse.Namespace) -> int:
-    from .io import write_png
-    from .pipeline import render_image
-    from .preview import render_output_images
+def _cameras_for(args, run):
     from .scene import load_scene
-    from .train import load_run
-    from tqdm import tqdm
 
-    run = load_run(args.run, args.checkpoint)
-    if args.cameras:
+    if getattr(args, "cameras", None):
         scene = load_scene(args.cameras, "all")
-    elif args.orbit:
+    elif getattr(args, "orbit", 0):
         scene = None
     else:
         scene = load_scene(run.scene_path, args.split)
     cams = orbit_cameras(run.train_scene, args.orbit) if scene is None else scene.cameras
     keys = [f"orbit_{i:03d}" for i in range(len(cams))] if scene is None else [f.key for f in scene.frames]
     n = len(cams) if not args.limit else min(args.limit, len(cams))
-    out = Path(args.out)
+    return cams, keys, n
+
+
+def _render_views(run, cams, keys, n, out: Path, hook=None, quiet=False, l_env=None) -> list[str]:
+    from tqdm import tqdm
+
+    from .io import write_png
+    from .pipeline import render_image
+    from .preview import render_output_images
+
     written = []
-    for i in tqdm(range(n), desc="render", file=sys.stderr, disable=args.json):
-        outs = render_image(run.field, cams, i, run.cfg.render_sampler, run.occupancy, run.l_env, run.background,
-                            run.train_scene.aabb, run.cfg.shading, run.dars_for(cams.c2w[i]),
-                            near=run.train_scene.near, far=run.train_scene.far, deferred=run.cfg.deferred)
+    for i in tqdm(range(n), desc="render", file=sys.stderr, disable=quiet):
+        outs = render_image(run.field, cams, i, run.cfg.render_sampler, run.occupancy,
+                            run.l_env if l_env is None else l_env, run.background, run.train_scene.aabb,
+                            run.cfg.shading, run.dars_for(cams.c2w[i]), near=run.train_scene.near,
+                            far=run.train_scene.far, deferred=run.cfg.deferred, outputs_hook=hook)
         for name, img in render_output_images(outs, srgb=run.train_scene.srgb).items():
             p = out / f"{keys[i]}_{name}.png"
             write_png(p, img)
             written.append(str(p))
+    return written
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from .train import load_run
+
+    run = load_run(args.run, args.checkpoint)
+    cams, keys, n = _cameras_for(args, run)
+    out = Path(args.out)
+    written = _render_views(run, cams, keys, n, out, quiet=args.json)
     if args.json:
         print(json.dumps({"views": n, "files": written}))
     else:
         print(f"rendered {n} views ({len(written)} images) into {out}")
+    return 0
+
+
+def cmd_relight(args: argparse.Namespace) -> int:
+    from .relight import parse_material_edit, relight_hook
+    from .sh import fit_sh_probe, read_envmap, rotation_x
+    from .train import load_run
+
+    if not args.probe and not args.sh and not args.edit:
+        raise DarsError("give a new light (--probe HDR or --sh JSON) and/or material edits (--edit CLASS:KEY=VALUE)")
+    run = load_run(args.run, args.checkpoint)
+    if run.cfg.shading != "pbr":
+        raise DarsError(f"{args.run} is a radiance (standard NeRF) run: it has no materials or light to change")
+    new_sh = None
+    if args.probe:
+        env = read_envmap(args.probe)
+        rot = rotation_x(args.probe_rotate_x) if args.probe_rotate_x else None
+        new_sh = fit_sh_probe(env, layout=args.layout, rotation=rot).coeffs.float()
+    elif args.sh:
+        p = Path(args.sh)
+        if not p.is_file():
+            raise DarsError(f"--sh {p}: file not found")
+        try:
+            d = json.loads(p.read_text())
+            new_sh = torch.tensor(d["coeffs"] if isinstance(d, dict) else d, dtype=torch.float32).reshape(9, 3)
+        except (KeyError, ValueError, RuntimeError) as e:
+            raise DarsError(f"--sh {p}: expected {{\"coeffs\": [[r, g, b] x 9]}} or a 9x3 list ({e})") from e
+    if new_sh is not None:
+        new_sh = new_sh * args.intensity
+    edits = [parse_material_edit(e) for e in (args.edit or [])]
+    hook = relight_hook(run.l_env, new_sh, edits, args.residual)
+    cams, keys, n = _cameras_for(args, run)
+    out = Path(args.out)
+    written = _render_views(run, cams, keys, n, out, hook=hook, quiet=args.json)
+    from .io import write_json
+
+    write_json(out / "relight.json", {"run": str(args.run), "sh": None if new_sh is None else new_sh.tolist(),
+                                      "original_sh": run.l_env.tolist(), "residual": args.residual,
+                                      "edits": [e.__dict__ for e in edits]})
+    if args.json:
+        print(json.dumps({"views": n, "files": written}))
+    else:
+        print(f"relit {n} views ({len(written)} images) into {out}")
     return 0

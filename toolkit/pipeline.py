@@ -98,7 +98,8 @@ class RenderOutputs:
 
     ``rgb``, ``diffuse``, ``specular`` are linear radiance (background composited into ``rgb``; diffuse and
     specular are premultiplied by opacity); ``depth`` is metres along the camera axis; ``normal`` is unit;
-    ``semantic_logits`` per ray; material maps are per ray (deferred) or opacity-normalised accumulations.
+    ``semantic_logits`` per ray (Σ w l / Σ w); material maps are per ray (deferred) or opacity-normalised
+    accumulations.
     """
 
     rgb: torch.Tensor
@@ -144,11 +145,13 @@ def _cat_outputs(a: FieldOutputs, b: FieldOutputs, order: torch.Tensor) -> Field
     return out
 
 
-def _query(field: DarsField, points, dirs, l_env, mode, deferred: bool):
+def _query(field: DarsField, points, dirs, l_env, mode, deferred: bool, hook=None):
     if deferred:
         sig, h = field.geometry_features(points)
         return sig, h, None
     out = field(points, dirs, l_env, mode)
+    if hook is not None:
+        out = hook(out)
     return out.density, None, out
 
 
@@ -165,6 +168,7 @@ def render_rays(
     generator: torch.Generator | None = None,
     shading_cfg: ShadingConfig = ShadingConfig(),
     deferred: bool = True,
+    outputs_hook=None,
 ) -> RenderOutputs:
     """Render a batch of rays (differentiable w.r.t. the field, ``l_env`` and the background).
 
@@ -189,6 +193,9 @@ def render_rays(
         generator: RNG for stratified jitter.
         shading_cfg: options of :func:`toolkit.shading.shade_pbr`.
         deferred: heads and shading per ray (fast) or per sample.
+        outputs_hook: optional callable ``FieldOutputs -> FieldOutputs`` applied to every field query before
+            shading (relighting and material edits, :mod:`toolkit.relight`); with ``deferred`` it sees the per-ray
+            head outputs.
     """
     R = len(rays)
     n = sampler.n_coarse
@@ -197,7 +204,7 @@ def render_rays(
     edges = stratified_edges(rays, n, sampler.perturb, generator)
     coarse, stratum = coarse_samples(rays, edges, occupancy)
     pts_c = coarse.points(rays.origins, rays.directions)
-    sig_c, h_c, out_c = _query(field, pts_c, rays.directions[coarse.ray_indices], l_env, mode, deferred)
+    sig_c, h_c, out_c = _query(field, pts_c, rays.directions[coarse.ray_indices], l_env, mode, deferred, outputs_hook)
     has = torch.zeros(R, dtype=torch.bool, device=dev)
     has[coarse.ray_indices] = True
     # ---- fine samples: hierarchical proposal, mixed with W̄ (DARS part 3)
@@ -226,7 +233,7 @@ def render_rays(
         t_f = edges.new_zeros(0)
         ray_f = torch.zeros(0, dtype=torch.long, device=dev)
     pts_f = rays.origins[ray_f] + t_f[:, None] * rays.directions[ray_f]
-    sig_f, h_f, out_f = _query(field, pts_f, rays.directions[ray_f], l_env, mode, deferred)
+    sig_f, h_f, out_f = _query(field, pts_f, rays.directions[ray_f], l_env, mode, deferred, outputs_hook)
     max_delta = (torch.maximum(rays.far, rays.near) - rays.near) / n
     samples, order = merge_samples(coarse.t_mids, coarse.ray_indices, t_f, ray_f, R, max_delta, rays.near, rays.far)
     density = torch.cat([sig_c, sig_f])[order]
@@ -242,6 +249,8 @@ def render_rays(
         feats = torch.cat([h_c, h_f])[order]
         hbar = accumulate_along_rays(weights, feats, ri, R) / safe
         heads = field.heads(hbar, rays.directions, l_env, mode)
+        if outputs_hook is not None:
+            heads = outputs_hook(heads)
         normal, logits = heads.normal, heads.semantic_logits
         if mode == "pbr":
             sh = heads.light if heads.light is not None else l_env.reshape(1, 9, 3).expand(R, 9, 3)
@@ -271,7 +280,8 @@ def render_rays(
             colour = out.radiance
         rgb = accumulate_along_rays(weights, colour, ri, R) + (1.0 - opacity) * bg
         normal = nn.functional.normalize(accumulate_along_rays(weights, out.normal, ri, R), dim=-1, eps=1e-6)
-        logits = accumulate_along_rays(weights, out.semantic_logits, ri, R)
+        # normalised by opacity: a ray that is still mostly transparent carries its surface's class, not ~0 logits
+        logits = accumulate_along_rays(weights, out.semantic_logits, ri, R) / safe
     return RenderOutputs(rgb=rgb, opacity=opacity[:, 0], depth=depth, normal=normal, semantic_logits=logits,
                          albedo=albedo, roughness=rough, metallic=metal, diffuse=diffuse, specular=specular,
                          light_residual=light_res, samples_per_ray=samples.counts(), weights=weights,
@@ -295,6 +305,7 @@ def render_image(
     near: float | None = None,
     far: float | None = None,
     deferred: bool = True,
+    outputs_hook=None,
 ) -> dict[str, torch.Tensor]:
     """Render every output of camera ``index`` as images.
 
@@ -314,7 +325,8 @@ def render_image(
         if dars is not None:  # every ray of this image belongs to the one view whose neighbours are row 0
             ctx = DarsContext(dars.cameras, dars.weight_maps, dars.neighbours[:1],
                               torch.zeros(len(sub), dtype=torch.long, device=sub.origins.device))
-        r = render_rays(field, sub, sampler, occupancy, l_env, background, shading, ctx, deferred=deferred)
+        r = render_rays(field, sub, sampler, occupancy, l_env, background, shading, ctx, deferred=deferred,
+                        outputs_hook=outputs_hook)
         for k in RENDER_KEYS:
             v = getattr(r, k)
             if v is not None:

@@ -542,7 +542,7 @@ def train_step(state: TrainState, data: TrainData) -> dict:
         terms["mat"] = material_loss(out.albedo, out.roughness, out.metallic, batch.labels, batch.metal,
                                      batch.albedo_gt, batch.iw)
     if stage_b:
-        terms["psnr"] = psnr_loss(pred, batch.target, batch.iw)
+        terms["psnr_loss"] = psnr_loss(pred, batch.target, batch.iw)
         if lw.eikonal > 0 and state.step >= lw.eikonal_start and out.weights.numel():
             m = min(2048, out.weights.numel())
             sel = torch.multinomial(out.weights.detach().float() + 1e-8, m, replacement=False, generator=state.generator
@@ -561,7 +561,7 @@ def train_step(state: TrainState, data: TrainData) -> dict:
         terms["light_reg"] = light_residual_loss(out.light_residual, state.l_env, lw_w)
     if state.colour is not None and lw.colour_reg > 0:
         terms["colour_reg"] = state.colour.regulariser()
-    weight = {"rgb": lw.rgb, "ssim": lw.ssim, "mat": lw.mat, "psnr": lw.psnr, "eikonal": lw.eikonal,
+    weight = {"rgb": lw.rgb, "ssim": lw.ssim, "mat": lw.mat, "psnr_loss": lw.psnr, "eikonal": lw.eikonal,
               "semantic": lw.semantic, "light_reg": lw.light_reg, "colour_reg": lw.colour_reg}
     loss = sum(weight[k] * v for k, v in terms.items())
     if not torch.isfinite(loss):
@@ -658,7 +658,7 @@ def _plot_curves(log_path: Path, out: Path) -> None:
     rows = [r for r in rows if r.get("kind") == "train"]
     if not rows:
         return
-    keys = [k for k in ("loss", "rgb", "ssim", "psnr", "mat", "eikonal", "semantic", "light_reg", "distortion")
+    keys = [k for k in ("loss", "rgb", "ssim", "psnr_loss", "mat", "eikonal", "semantic", "light_reg", "distortion")
             if any(k in r for r in rows)]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for k in keys:

@@ -1,0 +1,221 @@
+"""Training benchmarks (issue 4): quality after wall-clock budgets, and throughput.
+
+Cases (``--case``, default ``all``):
+
+* ``sample``   — the bundled gallery, ``fast`` preset: test PSNR and albedo MAE after 2, 5 and 10 minutes
+  (snapshots of one 10-minute run); same-run baseline: ``--baseline nerf`` (PSNR only).
+* ``lego``     — NeRF-synthetic Lego at 400 px (100 train views), PSNR on ``val`` after 5 and 15 minutes, full model
+  and ``--baseline nerf``.
+* ``tiny``     — tiny Lego (100 px; first 100 train, views 100-105 test): PSNR after 3, 5 and 10 minutes for
+  ``--baseline nerf`` and the full decomposed model; the issue's reference figures for public CPU code on these
+  cores are printed beside them (TensoRF 28.5 / 29.1 / 29.5 dB on a white-background copy).
+* ``throughput`` — training and rendering rays/s and peak memory for ``mlp`` vs ``grid`` fields and DARS vs uniform
+  sampling, on the sample, in one run (ratios against grid + uniform).
+
+Every training runs in its own subprocess (peak RSS per case). Figures depend on the machine and its load: run on a
+quiet machine (``make bench``). Usage: ``python bench/bench_train.py --case tiny [--threads 2] [--out bench/out]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+SHARED = (ROOT / ".." / "shared" / "data").resolve()
+PY = sys.executable
+TENSORF_TINY = {3: 28.5, 5: 29.1, 10: 29.5}
+
+
+def _train(scene: str, out: Path, minutes: float, snapshots: str, threads: int, extra: list[str]) -> dict:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.exists():
+        import shutil
+
+        shutil.rmtree(out)
+    cmd = [PY, "-m", "toolkit.cli", "train", scene, "--out", str(out), "--minutes", str(minutes), "--snapshots",
+           snapshots, "--threads", str(threads), "--quiet", *extra]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    t0 = time.time()
+    subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": str(threads)})
+    rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    rows = [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines() if x.strip()]
+    return {"wall_s": time.time() - t0, "peak_rss_mb": max(rss, before) / 1024.0, "steps": rows[-1]["step"] if rows else 0}
+
+
+def _eval_psnr(run_dir: Path, split: str, checkpoint: Path | None, views: list[int] | None, threads: int) -> dict:
+    import torch
+
+    from toolkit.io import linear_to_srgb
+    from toolkit.metrics import albedo_mae, material_mask, psnr
+    from toolkit.pipeline import render_image
+    from toolkit.scene import load_scene
+    from toolkit.train import load_run
+
+    torch.set_num_threads(threads)
+    run = load_run(run_dir, checkpoint)
+    sc = load_scene(run.scene_path, split)
+    idx = views if views is not None else list(range(len(sc)))
+    ps, maes = [], []
+    t0 = time.time()
+    for i in idx:
+        o = render_image(run.field, sc.cameras, i, run.cfg.render_sampler, run.occupancy, run.l_env, run.background,
+                         sc.aabb, run.cfg.shading, run.dars_for(sc.cameras.c2w[i]), near=sc.near, far=sc.far,
+                         deferred=run.cfg.deferred)
+        ps.append(float(psnr(linear_to_srgb(o["rgb"].clamp(0, 1)).permute(2, 0, 1), sc.load_image(i))))
+        if "albedo" in o and sc.has_extra("albedo") and sc.has_extra("semantic"):
+            mask = material_mask(sc.load_extra(i, "semantic"), sc.load_extra(i, "depth") if sc.has_extra("depth") else None)
+            if mask.any():
+                maes.append(float(albedo_mae(o["albedo"].permute(2, 0, 1).clamp(0, 1), sc.load_extra(i, "albedo"), mask)))
+    res = {"psnr": sum(ps) / len(ps), "views": len(idx), "render_s_per_view": (time.time() - t0) / len(idx)}
+    if maes:
+        res["albedo_mae"] = sum(maes) / len(maes)
+    return res
+
+
+def _milestones(run: Path, minutes: list[float], split: str, views, threads: int) -> dict:
+    out = {}
+    for m in minutes:
+        ck = run / "snapshots" / f"checkpoint_{m:g}min.pt"
+        if not ck.is_file():
+            ck = run / "checkpoint.pt"
+        out[m] = _eval_psnr(run, split, ck, views, threads)
+    return out
+
+
+def _table(title: str, header: list[str], rows: list[list]) -> str:
+    lines = [f"\n{title}", " | ".join(header), " | ".join("---" for _ in header)]
+    for r in rows:
+        lines.append(" | ".join(f"{v:.3f}" if isinstance(v, float) else str(v) for v in r))
+    return "\n".join(lines)
+
+
+def case_quality(name: str, scene: str, minutes: list[float], split: str, views, threads: int, out_dir: Path,
+                 variants: dict[str, list[str]], reference: dict | None = None) -> dict:
+    results = {}
+    total = max(minutes)
+    snaps = ",".join(f"{m:g}" for m in minutes)
+    for vname, extra in variants.items():
+        run = out_dir / name / vname
+        info = _train(scene, run, total, snaps, threads, extra)
+        results[vname] = {"train": info, "milestones": _milestones(run, minutes, split, views, threads)}
+    header = ["variant"] + [f"PSNR @{m:g} min" for m in minutes] + ["steps", "peak RSS MB"]
+    rows = []
+    for vname, r in results.items():
+        rows.append([vname] + [r["milestones"][m]["psnr"] for m in minutes] + [r["train"]["steps"],
+                                                                                  r["train"]["peak_rss_mb"]])
+    if reference:
+        rows.append(["reference (issue)"] + [reference.get(m, "-") for m in minutes] + ["-", "-"])
+    print(_table(f"[{name}] {scene} split={split} views={len(views) if views else 'all'} threads={threads}", header, rows))
+    base = list(results)[-1]
+    for vname, r in results.items():
+        if vname != base:
+            ratio = [r["milestones"][m]["psnr"] - results[base]["milestones"][m]["psnr"] for m in minutes]
+            print(f"  {vname} vs {base}: " + ", ".join(f"{d:+.2f} dB @{m:g} min" for d, m in zip(ratio, minutes)))
+    for vname, r in results.items():
+        if any("albedo_mae" in r["milestones"][m] for m in minutes):
+            print(f"  {vname} albedo MAE: " + ", ".join(f"{r['milestones'][m].get('albedo_mae', float('nan')):.4f} @{m:g} min"
+                                                        for m in minutes))
+    return results
+
+
+def case_throughput(threads: int, out_dir: Path) -> dict:
+    """Training and rendering rays/s and peak memory (tracemalloc-free: RSS of a subprocess per config)."""
+    code = r"""
+import json, sys, time, resource, torch
+sys.path.insert(0, %r)
+torch.set_num_threads(%d)
+from toolkit.train import make_config, prepare_data, init_state, train_step, resolve_config
+from toolkit.field import FieldConfig
+from toolkit.scene import load_scene
+from toolkit.pipeline import render_image
+kw = json.loads(sys.argv[1])
+enc = kw.pop('encoding')
+scene = load_scene(%r, 'train')
+cfg = make_config('fast' if enc == 'grid' else 'paper', steps=100000, pretrain_fraction=0.0, **kw)
+cfg = resolve_config(cfg, scene)
+data = prepare_data(scene, cfg, log=lambda m: None)
+st = init_state(cfg, data)
+n_warm = 80 if enc == 'grid' else 5
+for i in range(n_warm):
+    if st.step %% cfg.occupancy_every == 0:
+        st.occupancy.update(st.field.density, st.generator, all_cells=st.step < cfg.occupancy_warmup,
+                            warmup=st.step < cfg.occupancy_warmup)
+    train_step(st, data); st.step += 1
+n = 20 if enc == 'grid' else 3
+t = time.time()
+for i in range(n):
+    r = train_step(st, data); st.step += 1
+dt = (time.time() - t) / n
+t = time.time()
+o = render_image(st.field, scene.cameras, 0, cfg.render_sampler, st.occupancy, st.l_env.detach(), st.background,
+                 scene.aabb, cfg.shading, None, chunk=4096)
+rt = time.time() - t
+h, w = o['rgb'].shape[:2]
+print(json.dumps({'train_rays_s': cfg.batch_rays / dt, 'samples_per_ray': r['samples_per_ray'],
+                  'render_rays_s': h * w / rt, 'peak_rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+""" % (str(ROOT), threads, str(ROOT / "samples" / "gallery"))
+    configs = {"grid + uniform": {"encoding": "grid", "dars": False}, "grid + DARS": {"encoding": "grid"},
+               "mlp + uniform": {"encoding": "mlp", "dars": False}, "mlp + DARS": {"encoding": "mlp"}}
+    res = {}
+    for name, kw in configs.items():
+        p = subprocess.run([PY, "-c", code, json.dumps(kw)], capture_output=True, text=True, cwd=ROOT,
+                           env={**os.environ, "OMP_NUM_THREADS": str(threads)})
+        if p.returncode != 0:
+            raise RuntimeError(f"throughput case {name} failed:\n{p.stderr[-2000:]}")
+        res[name] = json.loads(p.stdout.strip().splitlines()[-1])
+    base = res["grid + uniform"]
+    rows = [[k, v["train_rays_s"], v["train_rays_s"] / base["train_rays_s"], v["render_rays_s"],
+             v["render_rays_s"] / base["render_rays_s"], v["samples_per_ray"], v["peak_rss_mb"]] for k, v in res.items()]
+    print(_table(f"[throughput] samples/gallery, threads={threads} (ratios vs grid + uniform)",
+                 ["config", "train rays/s", "ratio", "render rays/s", "ratio", "samples/ray", "peak RSS MB"], rows))
+    return res
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--case", default="all", choices=["all", "sample", "lego", "tiny", "throughput"])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out", default=str(ROOT / "bench" / "out"))
+    ap.add_argument("--lego-views", type=int, default=20, help="evaluate Lego on every (100 / N)-th val view")
+    args = ap.parse_args()
+    out = Path(args.out)
+    results: dict = {}
+    cases = ["throughput", "tiny", "sample", "lego"] if args.case == "all" else [args.case]
+    for c in cases:
+        if c == "sample":
+            results[c] = case_quality("sample", "samples/gallery", [2, 5, 10], "test", None, args.threads, out,
+                                      {"full (fast)": [], "standard NeRF (fast)": ["--baseline", "nerf"]})
+        elif c == "tiny":
+            f = SHARED / "tiny_lego" / "tiny_lego_100.npz"
+            if not f.is_file():
+                print(f"[tiny] skipped: {f} not present")
+                continue
+            results[c] = case_quality("tiny", str(f), [3, 5, 10], "test", None, args.threads, out,
+                                      {"full (fast)": [], "standard NeRF (fast, --baseline nerf)": ["--baseline", "nerf"]},
+                                      reference=TENSORF_TINY)
+        elif c == "lego":
+            d = SHARED / "nerf_synthetic" / "lego"
+            if not d.is_dir():
+                print(f"[lego] skipped: {d} not present")
+                continue
+            step = max(1, 100 // args.lego_views)
+            results[c] = case_quality("lego", str(d), [5, 15], "val", list(range(0, 100, step)), args.threads, out,
+                                      {"full (fast)": [], "standard NeRF (fast)": ["--baseline", "nerf"]})
+        elif c == "throughput":
+            results[c] = case_throughput(args.threads, out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"bench_train_{args.case}.json").write_text(json.dumps(results, indent=2, default=str))
+    print(f"\nfigures written to {out / f'bench_train_{args.case}.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
