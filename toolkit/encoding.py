@@ -121,8 +121,11 @@ def hash_grid_encode_torch(x: torch.Tensor, table: torch.Tensor, resolutions: to
     is_dense = ((res + 1) ** 3 <= table_size)[None, :, None]
     level_off = (torch.arange(n_levels, device=x.device) * table_size)[None, :, None]
     rows = torch.where(is_dense, dense_idx, hash_idx) + level_off  # [N, L, 8]
-    ob = offs.bool()[None, None]
-    w = torch.where(ob, f[:, :, None, :], 1.0 - f[:, :, None, :]).prod(-1)  # [N, L, 8]
+    # trilinear weights w_k = prod_d ((1 - f_d) + o_kd (2 f_d - 1)): plain Mul/Add (a broadcast Where is ~1.45x
+    # slower in ONNX Runtime and gives the same values)
+    o = offs.to(f.dtype)[None, None]  # [1, 1, 8, 3]
+    fd = f[:, :, None, :]
+    w = ((1.0 - fd) + o * (2.0 * fd - 1.0)).prod(-1)  # [N, L, 8]
     gathered = table[rows.reshape(-1)].reshape(x.shape[0], n_levels, 8, feats)
     return (gathered * w[..., None]).sum(2).reshape(x.shape[0], n_levels * feats)
 

@@ -1,0 +1,694 @@
+"""ONNX Runtime inference for devices — no torch (SPEC stage 14).
+
+Reads a directory written by :func:`export.field_onnx.export_onnx_models` (``field.onnx``, ``occupancy.npz``,
+``background.npz``, ``metadata.json``, optionally ``segment.onnx`` / ``light.onnx`` and reduced-precision
+variants ``field_fp16.onnx`` / ``field_int8.onnx``) and renders novel views with numpy + ONNX Runtime. Only
+numpy, onnxruntime and (for photos) Pillow are imported: ``import export.infer`` never loads torch.
+
+The renderer is the algorithm of :func:`toolkit.pipeline.render_image` with the run's ``render_sampler`` and
+``deferred=False``, re-implemented in numpy with the same float32 arithmetic:
+
+1. rays through pixel centres ``(u + 0.5, v + 0.5)`` (OpenGL camera: x right, y up, looking down −z), clipped
+   to the scene box by a slab test (entry clamped to 0.05 m) and to the scene's near/far when it has them;
+2. ``n_coarse`` evenly spaced strata in [near, far] (``perturb=False``), their midpoints kept where the
+   occupancy grid (``occupancy.npz``) is occupied;
+3. the field at the kept coarse samples; their compositing weights form the hierarchical proposal, from which
+   ``n_fine`` samples per ray are drawn by deterministic inverse-CDF sampling (CDF slice centres);
+4. the union, sorted along each ray with Voronoi intervals (at most one coarse step), composited as packed
+   samples: ``α = 1 − exp(−σ δ)``, ``w = T α``; per-sample PBR-shaded colour (the graph's ``colour``) summed
+   with ``w``, plus ``(1 − opacity)`` × the background (``background.npz``: constant colour or lat-long map).
+
+DARS along-ray density (SPEC stage 7 part 3) needs the training views' W maps and is a training/render-time
+prior: it is *not* part of the device path, which uses the hierarchical proposal only (the export report gives
+both the torch render with and without it).
+
+Example:
+    >>> model = load_model("out/onnx")                                           # doctest: +SKIP
+    >>> cam = camera_from_transforms("samples/gallery/transforms_test.json", 0)  # doctest: +SKIP
+    >>> img = render_view(model, cam)["rgb"]       # float32 [H, W, 3] linear    # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+__all__ = ["InferError", "PinholeCamera", "FieldModel", "RenderSettings", "load_model", "render_view",
+           "camera_from_transforms", "read_photo", "infer_segment", "infer_light", "FIELD_FILES", "REQUIRED_FILES"]
+
+FIELD_FILES = {"fp32": "field.onnx", "fp16": "field_fp16.onnx", "int8": "field_int8.onnx"}
+"""Field graph file per precision."""
+REQUIRED_FILES = ("metadata.json", "field.onnx", "occupancy.npz", "background.npz")
+"""What a directory needs to render (``export_onnx_models`` writes all of them)."""
+SEMANTIC_CLASSES = ("painting", "frame", "display", "base", "wall", "floor", "other")
+
+
+class InferError(ValueError):
+    """Bad input to the device inference path (missing files, wrong shapes); the message says what to do."""
+
+
+# ====================================================================== loading
+@dataclass(frozen=True)
+class PinholeCamera:
+    """One pinhole camera (SPEC: camera-to-world 4x4, OpenGL convention, metres; intrinsics in pixels).
+
+    Attributes:
+        c2w: float [4, 4] camera-to-world.
+        fx, fy: focal lengths, pixels.
+        cx, cy: principal point, pixels (pixel (u, v) has its centre at (u + 0.5, v + 0.5)).
+        width, height: image size, pixels.
+    """
+
+    c2w: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Sampler of the device renderer (defaults: the exported run's ``render_sampler``, read from metadata)."""
+
+    n_coarse: int
+    """Stratified samples per ray."""
+    n_fine: int
+    """Hierarchical samples per ray (0: coarse only)."""
+    near_min: float = 0.05
+    """Rays starting inside the box start here (metres), as :func:`toolkit.scene.generate_rays`."""
+    chunk: int = 8192
+    """Rays per batch (memory bound; results do not depend on it)."""
+
+
+class FieldModel:
+    """An exported run loaded for inference: the field session, occupancy grid, background and metadata.
+
+    Use :func:`load_model` to build one.
+
+    Attributes:
+        path: the export directory.
+        metadata: ``metadata.json`` as a dict.
+        precision: which field graph is loaded (``fp32``, ``fp16``, ``int8``).
+        shading: ``pbr`` (decomposed) or ``radiance`` (standard NeRF run).
+        sh: float32 [9, 3] the run's SH light ``l_env`` (SPEC convention), the default ``sh`` input.
+        aabb: float32 [2, 3] scene box.
+        occupancy_mask: bool [R^3] occupied cells (x-major: index = i R² + j R + k).
+        occupancy_resolution: R.
+        background: ``{"mode": ..., "colour": [3] or "env_map": [h, w, 3]}`` linear radiance.
+    """
+
+    def __init__(self, path: Path, metadata: dict, session, precision: str, occupancy: dict, background: dict):
+        self.path = path
+        self.metadata = metadata
+        self.session = session
+        self.precision = precision
+        self.shading = metadata["shading"]
+        self.sh = np.asarray(metadata["l_env"], np.float32).reshape(9, 3)
+        self.aabb = np.asarray(metadata["aabb"], np.float32).reshape(2, 3)
+        self.occupancy_resolution = int(occupancy["resolution"])
+        self.occupancy_aabb = np.asarray(occupancy["aabb"], np.float32).reshape(2, 3)
+        self.occupancy_mask = occupancy["mask"]
+        self.background = background
+        self.input_names = [i.name for i in session.get_inputs()]
+        self.output_names = [o.name for o in session.get_outputs()]
+        s = metadata["render_sampler"]
+        self.settings = RenderSettings(n_coarse=int(s["n_coarse"]), n_fine=int(s["n_fine"]),
+                                       near_min=float(metadata.get("near_min", 0.05)))
+
+    # ------------------------------------------------------------------ field
+    def query(self, points: np.ndarray, view_dirs: np.ndarray, sh: np.ndarray | None = None,
+              chunk: int = 65536) -> dict[str, np.ndarray]:
+        """Run the field graph on points (chunked).
+
+        Args:
+            points: float [N, 3] world positions, metres.
+            view_dirs: float [N, 3] unit ray directions (camera -> point).
+            sh: float [9, 3] global SH light (default: the run's ``l_env``); ignored by a ``radiance`` field.
+            chunk: points per ONNX Runtime call.
+
+        Returns:
+            ``{output name: float32 array [N, ...]}`` (see ``metadata["field"]["outputs"]``).
+        """
+        points = np.ascontiguousarray(points, np.float32)
+        view_dirs = np.ascontiguousarray(view_dirs, np.float32)
+        if points.ndim != 2 or points.shape[1] != 3 or view_dirs.shape != points.shape:
+            raise InferError(f"points {list(points.shape)} and view_dirs {list(view_dirs.shape)} must both be [N, 3]")
+        n = points.shape[0]
+        if n == 0:
+            shapes = self.metadata["field"]["outputs"]
+            return {k: np.zeros([0] + [int(d) for d in shapes[k][1:]], np.float32) for k in self.output_names}
+        feed_sh = np.ascontiguousarray(self.sh if sh is None else sh, np.float32)
+        if feed_sh.shape != (9, 3):
+            raise InferError(f"sh must be [9, 3] (SPEC order, linear radiance), got {list(feed_sh.shape)}")
+        parts: dict[str, list[np.ndarray]] = {k: [] for k in self.output_names}
+        for i in range(0, n, chunk):
+            feed = {"points": points[i:i + chunk], "view_dirs": view_dirs[i:i + chunk]}
+            if "sh" in self.input_names:
+                feed["sh"] = feed_sh
+            for k, v in zip(self.output_names, self.session.run(None, feed)):
+                parts[k].append(v)
+        return {k: np.concatenate(v).astype(np.float32, copy=False) for k, v in parts.items()}
+
+    # ------------------------------------------------------------------ occupancy and background
+    def occupied(self, points: np.ndarray) -> np.ndarray:
+        """bool [N]: inside the box and in an occupied cell (as :meth:`toolkit.sampling.OccupancyGrid.occupied`)."""
+        lo, hi = self.occupancy_aabb[0], self.occupancy_aabb[1]
+        u = (points - lo) / (hi - lo)
+        inside = ((u >= 0) & (u <= 1)).all(-1)
+        r = self.occupancy_resolution
+        ijk = np.clip((u * np.float32(r)).astype(np.int64), 0, r - 1)
+        return self.occupancy_mask[ijk[:, 0] * r * r + ijk[:, 1] * r + ijk[:, 2]] & inside
+
+    def background_radiance(self, directions: np.ndarray) -> np.ndarray:
+        """float32 [R, 3] background radiance for unit directions (as :class:`toolkit.pipeline.Background`)."""
+        bg = self.background
+        if bg["mode"] != "env":
+            return np.broadcast_to(np.asarray(bg["colour"], np.float32), (directions.shape[0], 3)).copy()
+        env = bg["env_map"]
+        h, w, _ = env.shape
+        z = np.clip(directions[:, 2], -1.0, 1.0)
+        theta = np.arccos(z)
+        phi = np.arctan2(directions[:, 0], directions[:, 1]) % np.float32(2 * math.pi)
+        r = np.clip(theta / np.float32(math.pi) * h - 0.5, 0, h - 1)
+        c = phi / np.float32(2 * math.pi) * w - 0.5
+        r0 = np.minimum(np.floor(r), h - 2).astype(np.int64) if h > 1 else r.astype(np.int64)
+        fr = (r - r0)[:, None]
+        c0f = np.floor(c)
+        fc = (c - c0f)[:, None]
+        c0 = c0f.astype(np.int64) % w
+        c1 = (c0 + 1) % w
+        r1 = np.minimum(r0 + 1, h - 1)
+        flat = env.reshape(-1, 3)
+        return (flat[r0 * w + c0] * ((1 - fr) * (1 - fc)) + flat[r0 * w + c1] * ((1 - fr) * fc)
+                + flat[r1 * w + c0] * (fr * (1 - fc)) + flat[r1 * w + c1] * (fr * fc)).astype(np.float32)
+
+
+def _check_dir(path: Path, needed: Sequence[str]) -> None:
+    if not path.is_dir():
+        raise InferError(f"export directory not found: {path} (create it with `dars export-onnx RUN --out DIR`)")
+    missing = [f for f in needed if not (path / f).is_file()]
+    if missing:
+        raise InferError(f"{path} is missing {', '.join(missing)}: it is not a complete `dars export-onnx` output; "
+                         "re-run `dars export-onnx RUN --out DIR`")
+
+
+def make_session(path: str | os.PathLike, threads: int | None = None):
+    """An ONNX Runtime CPU session with ``threads`` intra-op threads (None: ORT's default)."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    if threads:
+        opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+    opts.log_severity_level = 3
+    try:
+        return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+    except Exception as e:  # onnxruntime raises its own exception types
+        raise InferError(f"ONNX Runtime could not load {path}: {e}") from e
+
+
+def load_model(path: str | os.PathLike, precision: str = "fp32", threads: int | None = None) -> FieldModel:
+    """Load an export directory for rendering.
+
+    Args:
+        path: directory written by ``dars export-onnx``.
+        precision: ``fp32`` (``field.onnx``), ``fp16`` (``field_fp16.onnx``) or ``int8`` (``field_int8.onnx``).
+        threads: ONNX Runtime intra-op threads (None: its default, all cores).
+
+    Raises:
+        InferError: the directory or one of its files is missing or unreadable.
+    """
+    path = Path(path)
+    if precision not in FIELD_FILES:
+        raise InferError(f"precision={precision!r}: choose one of {sorted(FIELD_FILES)}")
+    _check_dir(path, REQUIRED_FILES)
+    if not (path / FIELD_FILES[precision]).is_file():
+        raise InferError(f"{path / FIELD_FILES[precision]} not found: export it with "
+                         f"`dars export-onnx RUN --out {path} --precision fp32,{precision}`")
+    try:
+        metadata = json.loads((path / "metadata.json").read_text())
+        occ = np.load(path / "occupancy.npz")
+        r = int(occ["resolution"])
+        occupancy = {"resolution": r, "aabb": occ["aabb"],
+                     "mask": np.unpackbits(occ["mask_bits"], count=r ** 3).astype(bool)}
+        b = np.load(path / "background.npz")
+        mode = str(b["mode"])
+        background = {"mode": mode}
+        if mode == "env":
+            background["env_map"] = np.asarray(b["env_map"], np.float32)
+        else:
+            background["colour"] = np.asarray(b["colour"], np.float32).reshape(3)
+    except (OSError, KeyError, ValueError) as e:
+        raise InferError(f"{path}: could not read the export ({type(e).__name__}: {e}); "
+                         "re-run `dars export-onnx RUN --out DIR`") from e
+    session = make_session(path / FIELD_FILES[precision], threads)
+    return FieldModel(path, metadata, session, precision, occupancy, background)
+
+
+# ====================================================================== cameras and rays
+def camera_from_transforms(path: str | os.PathLike, index: int) -> PinholeCamera:
+    """Camera ``index`` of a Blender/nerfstudio ``transforms*.json`` (no torch; no undistortion or downscaling).
+
+    Intrinsics from per-frame or top-level ``fl_x, fl_y, cx, cy, w, h``, or ``camera_angle_x`` (+ the image size
+    from ``w, h`` or the frame's image file).
+
+    Raises:
+        InferError: missing file or frame, or intrinsics that cannot be determined.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InferError(f"transforms file not found: {path}")
+    meta = json.loads(path.read_text())
+    frames = meta.get("frames", [])
+    if not 0 <= index < len(frames):
+        raise InferError(f"{path}: frame index {index} out of range (the file has {len(frames)} frames)")
+    fr = frames[index]
+    get = lambda k: fr.get(k, meta.get(k))  # noqa: E731
+    w, h = get("w"), get("h")
+    if w is None or h is None:
+        fp = fr.get("file_path")
+        if fp is None:
+            raise InferError(f"{path}: frame {index} has no image size (w, h) and no file_path")
+        img = path.parent / fp
+        cands = [img] + [img.with_suffix(s) for s in (".png", ".jpg", ".jpeg")] + [Path(str(img) + ".png")]
+        found = next((c for c in cands if c.is_file()), None)
+        if found is None:
+            raise InferError(f"{path}: frame {index} has no w/h and its image {img} was not found")
+        from PIL import Image
+
+        with Image.open(found) as im:
+            w, h = im.size
+    w, h = int(w), int(h)
+    if get("fl_x") is not None:
+        fx = float(get("fl_x"))
+        fy = float(get("fl_y") if get("fl_y") is not None else fx)
+    elif get("camera_angle_x") is not None:
+        fx = 0.5 * w / math.tan(0.5 * float(get("camera_angle_x")))
+        fy = 0.5 * h / math.tan(0.5 * float(get("camera_angle_y"))) if get("camera_angle_y") is not None else fx
+    else:
+        raise InferError(f"{path}: no intrinsics (fl_x or camera_angle_x)")
+    cx = float(get("cx")) if get("cx") is not None else 0.5 * w
+    cy = float(get("cy")) if get("cy") is not None else 0.5 * h
+    c2w = np.asarray(fr["transform_matrix"], np.float32).reshape(4, 4)
+    return PinholeCamera(c2w, fx, fy, cx, cy, w, h)
+
+
+def _intersect_aabb(o: np.ndarray, d: np.ndarray, aabb: np.ndarray, near_min: float):
+    inv = np.float32(1.0) / np.where(np.abs(d) < 1e-12, np.float32(1e-12), d)
+    t0 = (aabb[0] - o) * inv
+    t1 = (aabb[1] - o) * inv
+    near = np.maximum(np.minimum(t0, t1).max(-1), np.float32(near_min))
+    far = np.maximum(t0, t1).min(-1)
+    return near, far
+
+
+def generate_camera_rays(camera: PinholeCamera, aabb: np.ndarray, near: float | None = None,
+                         far: float | None = None, near_min: float = 0.05) -> dict[str, np.ndarray]:
+    """Every pixel's ray, row-major (numpy mirror of :func:`toolkit.scene.generate_rays`).
+
+    Returns:
+        dict of float32 ``origins`` [R, 3], ``directions`` [R, 3] (unit), ``near``, ``far``, ``z_scale`` [R].
+    """
+    h, w = int(camera.height), int(camera.width)
+    f32 = np.float32
+    v, u = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    pu = u.reshape(-1).astype(f32) + f32(0.5)
+    pv = v.reshape(-1).astype(f32) + f32(0.5)
+    d_cam = np.stack([(pu - f32(camera.cx)) / f32(camera.fx), -(pv - f32(camera.cy)) / f32(camera.fy),
+                      -np.ones_like(pu)], -1)
+    c2w = np.asarray(camera.c2w, f32)
+    d_world = (c2w[:3, :3][None] * d_cam[:, None, :]).sum(-1)
+    norm = np.sqrt((d_world * d_world).sum(-1, keepdims=True))
+    directions = d_world / norm
+    origins = np.broadcast_to(c2w[:3, 3], directions.shape).copy()
+    aabb = np.asarray(aabb, f32)
+    if near is not None and far is not None:
+        bn, bf = _intersect_aabb(origins, directions, aabb, near_min)
+        n = np.maximum(np.full_like(pu, near), bn)
+        fa = np.minimum(np.full_like(pu, far), bf)
+    else:
+        n, fa = _intersect_aabb(origins, directions, aabb, near_min)
+    return {"origins": origins, "directions": directions.astype(f32), "near": n.astype(f32),
+            "far": fa.astype(f32), "z_scale": (f32(1.0) / norm[:, 0]).astype(f32)}
+
+
+# ====================================================================== packed volume rendering (numpy)
+def _torch_linspace01(n: int) -> np.ndarray:
+    """float32 [n + 1] like ``torch.linspace(0, 1, n + 1)`` (it fills the two halves from either end)."""
+    steps = n + 1
+    step = np.float32(1.0) / np.float32(n)
+    i = np.arange(steps)
+    half = steps // 2
+    return np.where(i < half, i.astype(np.float32) * step,
+                    np.float32(1.0) - (steps - 1 - i).astype(np.float32) * step).astype(np.float32)
+
+
+def _ray_starts(ray_indices: np.ndarray, n_rays: int) -> np.ndarray:
+    counts = np.bincount(ray_indices, minlength=n_rays)
+    return np.cumsum(counts) - counts
+
+
+def render_weights(density: np.ndarray, deltas: np.ndarray, ray_indices: np.ndarray, n_rays: int) -> np.ndarray:
+    """float32 [S] compositing weights ``T α`` of packed samples (mirror of :func:`toolkit.render.render_weights`)."""
+    sd = (density * deltas).astype(np.float32)
+    alphas = np.float32(1.0) - np.exp(-sd)
+    if sd.size == 0:
+        return sd
+    sd64 = sd.astype(np.float64)
+    excl = np.cumsum(sd64) - sd64
+    starts = _ray_starts(ray_indices, n_rays)
+    offset = excl[np.minimum(starts, excl.shape[0] - 1)][ray_indices]
+    trans = np.exp(-(excl - offset)).astype(np.float32)
+    return trans * alphas
+
+
+def _accumulate(weights: np.ndarray, values: np.ndarray | None, ray_indices: np.ndarray, n_rays: int) -> np.ndarray:
+    """float32 [R, C] Σ w v per ray ([R, 1] for ``values=None``)."""
+    src = weights[:, None] if values is None else weights[:, None] * values.reshape(values.shape[0], -1)
+    out = np.empty((n_rays, src.shape[1]), np.float32)
+    for c in range(src.shape[1]):
+        out[:, c] = np.bincount(ray_indices, weights=src[:, c], minlength=n_rays)
+    return out
+
+
+def _sample_fine(edges: np.ndarray, pdf: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Deterministic inverse-CDF samples (mirror of :func:`toolkit.sampling.sample_fine` with ``perturb=False``)."""
+    R, n = pdf.shape
+    total = int(counts.sum())
+    if total == 0:
+        return np.zeros(0, np.float32), np.zeros(0, np.int64)
+    f32 = np.float32
+    valid = (edges[:, 1:] > edges[:, :-1]).astype(f32)
+    p = pdf * valid
+    s = p.sum(-1, keepdims=True)
+    p = np.where(s > 1e-12, p / np.maximum(s, f32(1e-12)), valid / np.maximum(valid.sum(-1, keepdims=True), f32(1.0)))
+    cdf = np.concatenate([np.zeros((R, 1), f32), np.cumsum(p, -1, dtype=f32)], -1)
+    cdf[:, -1] = 1.0
+    ray_idx = np.repeat(np.arange(R), counts)
+    j = np.arange(total) - _ray_starts(ray_idx, R)[ray_idx]
+    u = np.clip((j.astype(f32) + f32(0.5)) / counts[ray_idx].astype(f32), f32(0.0), f32(1.0 - 1e-6))
+    rows = cdf[ray_idx]
+    k = np.clip((rows <= u[:, None]).sum(-1), 1, n) - 1  # searchsorted(right=True)
+    ar = np.arange(total)
+    c0, c1 = rows[ar, k], rows[ar, k + 1]
+    e = edges[ray_idx]
+    e0, e1 = e[ar, k], e[ar, k + 1]
+    frac = np.clip((u - c0) / np.maximum(c1 - c0, f32(1e-12)), f32(0.0), f32(1.0))
+    return (e0 + frac * (e1 - e0)).astype(f32), ray_idx
+
+
+def _merge(t_a, ray_a, t_b, ray_b, max_delta, near, far):
+    """Union sorted by (ray, t) with Voronoi intervals (mirror of :func:`toolkit.sampling.merge_samples`)."""
+    t = np.concatenate([t_a, t_b])
+    r = np.concatenate([ray_a, ray_b])
+    if t.size == 0:
+        return t, t, r, np.zeros(0, np.int64)
+    span = np.maximum(far - near, np.float32(1e-9)).astype(np.float64)
+    key = r.astype(np.float64) + np.clip((t.astype(np.float64) - near.astype(np.float64)[r]) / span[r], 0.0, 1.0 - 1e-9)
+    order = np.argsort(key, kind="stable")
+    t, r = t[order], r[order]
+    half = np.float32(0.5) * max_delta[r]
+    same_prev = np.concatenate([[False], r[1:] == r[:-1]])
+    same_next = np.concatenate([r[:-1] == r[1:], [False]])
+    gap = t[1:] - t[:-1]
+    gap_prev = np.concatenate([np.zeros(1, np.float32), gap])
+    gap_next = np.concatenate([gap, np.zeros(1, np.float32)])
+    left = np.where(same_prev, np.minimum(np.float32(0.5) * gap_prev, half), half)
+    right = np.where(same_next, np.minimum(np.float32(0.5) * gap_next, half), half)
+    starts = np.maximum(t - left, near[r])
+    ends = np.maximum(np.minimum(t + right, far[r]), starts)
+    return starts.astype(np.float32), ends.astype(np.float32), r, order
+
+
+_PER_SAMPLE = ("albedo", "roughness", "metallic")
+
+
+def render_rays(model: FieldModel, origins: np.ndarray, directions: np.ndarray, near: np.ndarray, far: np.ndarray,
+                z_scale: np.ndarray, settings: RenderSettings | None = None,
+                sh: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Render R rays through the exported field (see the module docstring for the algorithm).
+
+    Args:
+        model: from :func:`load_model`.
+        origins, directions: float [R, 3] (unit directions).
+        near, far: float [R] ray bounds (``far <= near``: the ray misses the box).
+        z_scale: float [R] cosine to the optical axis (depth = t · z_scale).
+        settings: sample counts (default: the run's render sampler).
+        sh: float [9, 3] global SH light (default: the run's ``l_env``): relights a ``pbr`` field.
+
+    Returns:
+        float32 arrays per ray: ``rgb`` [R, 3] (linear radiance, background composited), ``depth`` [R] (metres
+        along the optical axis), ``opacity`` [R], ``normal`` [R, 3], ``semantic_logits`` [R, C], ``samples`` [R];
+        for ``pbr``: ``albedo`` [R, 3], ``roughness``/``metallic`` [R] (opacity-normalised), ``diffuse``/
+        ``specular`` [R, 3] (premultiplied by opacity).
+    """
+    st = settings or model.settings
+    f32 = np.float32
+    R, n = origins.shape[0], int(st.n_coarse)
+    far_m = np.maximum(far, near)
+    edges = near[:, None] + (far_m - near)[:, None] * _torch_linspace01(n)[None]
+    starts, ends = edges[:, :-1], edges[:, 1:]
+    mids = f32(0.5) * (starts + ends)
+    pts = origins[:, None, :] + mids[..., None] * directions[:, None, :]
+    keep = (ends > starts) & model.occupied(pts.reshape(-1, 3)).reshape(R, n)
+    ray_c, k_c = np.nonzero(keep)
+    t0c, t1c = starts[ray_c, k_c], ends[ray_c, k_c]
+    tmid_c = f32(0.5) * (t0c + t1c)
+    out_c = model.query(origins[ray_c] + tmid_c[:, None] * directions[ray_c], directions[ray_c], sh)
+    counts = np.zeros(R, np.int64)
+    if st.n_fine > 0:
+        w_c = render_weights(out_c["density"], t1c - t0c, ray_c, R)
+        pdf = np.zeros((R, n), f32)
+        pdf[ray_c, k_c] = w_c
+        counts[np.unique(ray_c)] = st.n_fine
+        t_f, ray_f = _sample_fine(edges, pdf, counts)
+    else:
+        t_f, ray_f = np.zeros(0, f32), np.zeros(0, np.int64)
+    out_f = model.query(origins[ray_f] + t_f[:, None] * directions[ray_f], directions[ray_f], sh)
+    max_delta = (np.maximum(far, near) - near) / f32(n)
+    s0, s1, ri, order = _merge(tmid_c, ray_c, t_f, ray_f, max_delta, near, far)
+    outs = {k: np.concatenate([out_c[k], out_f[k]])[order] for k in out_c}
+    weights = render_weights(outs["density"], s1 - s0, ri, R)
+    opacity = _accumulate(weights, None, ri, R)
+    safe = np.maximum(opacity, f32(1e-6))
+    tm = f32(0.5) * (s0 + s1)
+    depth = (_accumulate(weights, tm[:, None], ri, R)[:, 0] / safe[:, 0]) * z_scale
+    bg = model.background_radiance(directions)
+    colour = outs["colour"] if model.shading == "pbr" else outs["radiance"]
+    res = {"rgb": _accumulate(weights, colour, ri, R) + (f32(1.0) - opacity) * bg, "depth": depth,
+           "opacity": opacity[:, 0]}
+    nrm = _accumulate(weights, outs["normal"], ri, R)
+    res["normal"] = nrm / np.maximum(np.sqrt((nrm * nrm).sum(-1, keepdims=True)), f32(1e-6))
+    res["semantic_logits"] = _accumulate(weights, outs["semantic_logits"], ri, R)
+    if model.shading == "pbr":
+        res["albedo"] = _accumulate(weights, outs["albedo"], ri, R) / safe
+        res["roughness"] = (_accumulate(weights, outs["roughness"], ri, R) / safe)[:, 0]
+        res["metallic"] = (_accumulate(weights, outs["metallic"], ri, R) / safe)[:, 0]
+        res["diffuse"] = _accumulate(weights, outs["diffuse"], ri, R)
+        res["specular"] = _accumulate(weights, outs["specular"], ri, R)
+    res["samples"] = np.bincount(ri, minlength=R).astype(np.float32)
+    return {k: v.astype(np.float32, copy=False) for k, v in res.items()}
+
+
+def render_view(model: FieldModel, camera: PinholeCamera, settings: RenderSettings | None = None,
+                sh: np.ndarray | None = None, progress: Callable[[int, int], None] | None = None
+                ) -> dict[str, np.ndarray]:
+    """Render every decomposed output of one camera (numpy + ONNX Runtime; the same algorithm as
+    :func:`toolkit.pipeline.render_image` with ``deferred=False`` and no DARS along-ray density).
+
+    Args:
+        model: from :func:`load_model`.
+        camera: the view.
+        settings: sampler (default: the run's ``render_sampler``; ``chunk`` rays per batch).
+        sh: float [9, 3] SH light to relight with (default: the run's ``l_env``).
+        progress: called as ``progress(rays_done, rays_total)`` after each chunk.
+
+    Returns:
+        dict of float32 images: ``rgb``, ``albedo``, ``diffuse``, ``specular``, ``normal`` [H, W, 3],
+        ``semantic_logits`` [H, W, C], ``depth``, ``opacity``, ``roughness``, ``metallic``, ``samples`` [H, W]
+        (``rgb`` is linear radiance: apply the sRGB transfer for display).
+    """
+    st = settings or model.settings
+    md = model.metadata
+    rays = generate_camera_rays(camera, model.aabb, md.get("near"), md.get("far"), st.near_min)
+    total = rays["origins"].shape[0]
+    parts: dict[str, list[np.ndarray]] = {}
+    for i in range(0, total, st.chunk):
+        sl = slice(i, i + st.chunk)
+        r = render_rays(model, rays["origins"][sl], rays["directions"][sl], rays["near"][sl], rays["far"][sl],
+                        rays["z_scale"][sl], st, sh)
+        for k, v in r.items():
+            parts.setdefault(k, []).append(v)
+        if progress is not None:
+            progress(min(i + st.chunk, total), total)
+    h, w = int(camera.height), int(camera.width)
+    return {k: np.concatenate(v).reshape((h, w) + np.concatenate(v).shape[1:]) for k, v in parts.items()}
+
+
+# ====================================================================== photos: segmentation and light
+def read_photo(photo) -> np.ndarray:
+    """float32 [H, W, 3] sRGB in [0, 1] from a path (PNG/JPEG, via Pillow) or an array (uint8 or float [0, 1])."""
+    if isinstance(photo, (str, os.PathLike)):
+        p = Path(photo)
+        if not p.is_file():
+            raise InferError(f"photo not found: {p}")
+        from PIL import Image
+
+        try:
+            with Image.open(p) as im:
+                arr = np.asarray(im.convert("RGB"), np.float32) / 255.0
+        except OSError as e:
+            raise InferError(f"{p} is not a readable image ({e})") from e
+        return arr
+    arr = np.asarray(photo)
+    if arr.ndim != 3 or arr.shape[-1] not in (3, 4):
+        raise InferError(f"a photo array must be [H, W, 3] (or RGBA), got {list(arr.shape)}")
+    arr = arr[..., :3]
+    return arr.astype(np.float32) / 255.0 if arr.dtype == np.uint8 else arr.astype(np.float32)
+
+
+def _resize(img: np.ndarray, h: int, w: int) -> np.ndarray:
+    from PIL import Image
+
+    chans = [np.asarray(Image.fromarray(img[..., c]).resize((w, h), Image.BILINEAR)) for c in range(img.shape[-1])]
+    return np.stack(chans, -1).astype(np.float32)
+
+
+def _image_input(session) -> tuple[str, int | None, int | None]:
+    inp = session.get_inputs()[0]
+    shape = inp.shape
+    if len(shape) != 4:
+        raise InferError(f"the network's input '{inp.name}' has shape {shape}; expected N x 3 x H x W")
+    h = shape[2] if isinstance(shape[2], int) else None
+    w = shape[3] if isinstance(shape[3], int) else None
+    return inp.name, h, w
+
+
+def infer_segment(path: str | os.PathLike, photos: Sequence, threads: int | None = None) -> list[np.ndarray]:
+    """7-class labels of photos with ``segment.onnx`` (SPEC classes 0 painting .. 6 other).
+
+    Args:
+        path: export directory (or the ``segment.onnx`` file itself).
+        photos: paths or [H, W, 3] arrays (sRGB; uint8 or float in [0, 1]).
+        threads: ONNX Runtime intra-op threads.
+
+    Returns:
+        one uint8 [H, W] label image per photo, at the photo's size.
+
+    Raises:
+        InferError: no ``segment.onnx`` (the run's scene had no trained built-in segmenter) or unreadable photos.
+    """
+    f = Path(path)
+    f = f / "segment.onnx" if f.is_dir() else f
+    if not f.is_file():
+        raise InferError(f"{f} not found: the export has no segmentation network (train one with "
+                         "`dars priors segment SCENE --backend builtin`, then re-run `dars export-onnx`)")
+    sess = make_session(f, threads)
+    name, sh_, sw_ = _image_input(sess)
+    labels = []
+    for ph in photos:
+        img = read_photo(ph)
+        H, W = img.shape[:2]
+        x = img if sh_ is None or sw_ is None else _resize(img, sh_, sw_)
+        logits = sess.run(None, {name: np.ascontiguousarray(x.transpose(2, 0, 1)[None], np.float32)})[0][0]
+        lab = logits.argmax(0).astype(np.uint8)
+        if lab.shape != (H, W):
+            from PIL import Image
+
+            lab = np.asarray(Image.fromarray(lab).resize((W, H), Image.NEAREST))
+        labels.append(lab)
+    return labels
+
+
+def _srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 (as :func:`toolkit.io.srgb_to_linear`, which this module cannot import: it loads torch)."""
+    x = np.clip(x, 0.0, None)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def _linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, None)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 1e-8), 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def _adaptive_avg_pool(img: np.ndarray, h: int, w: int) -> np.ndarray:
+    """[H, W, C] -> [h, w, C] with torch's ``adaptive_avg_pool2d`` bins (floor(i H / h) .. ceil((i + 1) H / h))."""
+    H, W = img.shape[:2]
+    c = np.zeros((H + 1, W + 1, img.shape[2]), np.float64)
+    c[1:, 1:] = img.astype(np.float64).cumsum(0).cumsum(1)
+    r0 = (np.arange(h) * H) // h
+    r1 = -((-(np.arange(h) + 1) * H) // h)
+    c0 = (np.arange(w) * W) // w
+    c1 = -((-(np.arange(w) + 1) * W) // w)
+    s = c[r1][:, c1] - c[r0][:, c1] - c[r1][:, c0] + c[r0][:, c0]
+    area = ((r1 - r0)[:, None] * (c1 - c0)[None])[..., None]
+    return (s / area).astype(np.float32)
+
+
+def _bilinear(img: np.ndarray, h: int, w: int) -> np.ndarray:
+    """[H, W, C] -> [h, w, C] bilinear with half-pixel centres (torch ``align_corners=False``)."""
+    H, W = img.shape[:2]
+
+    def coords(n_out, n_in):
+        x = np.maximum((np.arange(n_out) + 0.5) * (n_in / n_out) - 0.5, 0.0)
+        i0 = np.minimum(np.floor(x).astype(np.int64), n_in - 1)
+        i1 = np.minimum(i0 + 1, n_in - 1)
+        return i0, i1, (x - i0)
+
+    y0, y1, fy = coords(h, H)
+    x0, x1, fx = coords(w, W)
+    fy, fx = fy[:, None, None], fx[None, :, None]
+    top = img[y0][:, x0] * (1 - fx) + img[y0][:, x1] * fx
+    bot = img[y1][:, x0] * (1 - fx) + img[y1][:, x1] * fx
+    return (top * (1 - fy) + bot * fy).astype(np.float32)
+
+
+def infer_light(path: str | os.PathLike, photos: Sequence, threads: int | None = None) -> np.ndarray:
+    """SH light [N, 9, 3] (SPEC order, incident radiance, world frame) of photos with ``light.onnx``.
+
+    Contract of ``light.onnx`` (:func:`export.onnx_light.export_lightnet_onnx`): input N x 3 x H x W float32,
+    sRGB in [0, 1]; output N x 9 x 3 (or N x 27, coefficient-major). Photos are resized to the trained
+    ``dars.input_size`` as :func:`toolkit.lightnet.predict_sh` does (area averaging in linear light when
+    shrinking — ``dars.resize = area-srgb`` in the metadata averages the sRGB values instead — bilinear when
+    enlarging, clamped to [0, 1]); a graph with a static H x W is fed at that size; ``dars.normalize =
+    imagenet`` asks for ImageNet mean/std normalisation outside the graph.
+
+    Raises:
+        InferError: no ``light.onnx`` in the export (see ``metadata.json`` ``light`` for why) or bad photos.
+    """
+    f = Path(path)
+    f = f / "light.onnx" if f.is_dir() else f
+    if not f.is_file():
+        raise InferError(f"{f} not found: the export has no light-estimation network (see metadata.json "
+                         "'light' for why; re-export with --light-weights FILE)")
+    sess = make_session(f, threads)
+    name, sh_, sw_ = _image_input(sess)
+    meta = sess.get_modelmeta().custom_metadata_map
+    size = int(meta["dars.input_size"]) if meta.get("dars.input_size", "").isdigit() else None
+    th, tw = (sh_, sw_) if sh_ is not None and sw_ is not None else ((size, size) if size else (None, None))
+    out = []
+    linear_area = meta.get("dars.resize", "area-linear") != "area-srgb"
+    for ph in photos:
+        img = read_photo(ph)
+        if th is not None and img.shape[:2] != (th, tw):
+            if img.shape[0] >= th and img.shape[1] >= tw:
+                img = (_linear_to_srgb(_adaptive_avg_pool(_srgb_to_linear(img), th, tw)) if linear_area
+                       else _adaptive_avg_pool(img, th, tw))
+            else:
+                img = _bilinear(img, th, tw)
+            img = np.clip(img, 0.0, 1.0).astype(np.float32)
+        if meta.get("dars.normalize") == "imagenet":
+            img = (img - np.array([0.485, 0.456, 0.406], np.float32)) / np.array([0.229, 0.224, 0.225], np.float32)
+        y = sess.run(None, {name: np.ascontiguousarray(img.transpose(2, 0, 1)[None], np.float32)})[0]
+        if y.size != 27:
+            raise InferError(f"{f}: output has {y.size} values per image; expected 27 SH coefficients")
+        out.append(y.reshape(9, 3))
+    return np.stack(out).astype(np.float32) if out else np.zeros((0, 9, 3), np.float32)

@@ -1,0 +1,209 @@
+"""The torch-free ONNX Runtime renderer (export/infer.py): no torch import, numpy mirrors of the torch sampler and
+compositing, clear errors for incomplete exports, and ``dars infer``."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("onnxruntime")
+pytest.importorskip("onnx")
+
+from _onnx_bundle import ROOT, SAMPLE, build_bundle  # noqa: E402
+from export import infer  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="session")
+def bundle(tmp_path_factory):
+    if not (SAMPLE / "transforms_train.json").is_file():
+        pytest.skip("bundled sample not rendered yet (samples/gallery)")
+    return build_bundle(tmp_path_factory.getbasetemp() / "onnx_gallery")
+
+
+def _env():
+    return {**os.environ, "OMP_NUM_THREADS": "1"}
+
+
+# ------------------------------------------------------------------------------------------------ no torch
+def test_import_does_not_load_torch():
+    code = "import sys, export.infer; print('torch' in sys.modules)"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=_env(), timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "False", "export/infer.py must not import torch"
+
+
+def test_render_without_torch_in_the_process(bundle):
+    """Load, render a (downscaled) sample camera and segment a photo in a process that never imports torch."""
+    code = f"""
+import sys, json, numpy as np
+from export import infer
+m = infer.load_model({str(bundle['out'])!r}, threads=1)
+c = infer.camera_from_transforms({str(SAMPLE / 'transforms_test.json')!r}, 0)
+c = infer.PinholeCamera(c.c2w, c.fx / 4, c.fy / 4, c.cx / 4, c.cy / 4, 32, 32)
+o = infer.render_view(m, c)
+lab = infer.infer_segment({str(bundle['out'])!r}, [{str(SAMPLE / 'test' / 'r_000.png')!r}], threads=1)[0]
+print(json.dumps({{"torch": 'torch' in sys.modules, "keys": sorted(o), "rgb": list(o["rgb"].shape),
+                  "finite": bool(np.isfinite(o["rgb"]).all()), "labels": list(lab.shape)}}))
+"""
+    if not (SAMPLE / "test" / "r_000.png").is_file():
+        pytest.skip("sample test image r_000.png not found")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=_env(), timeout=300)
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout.strip().splitlines()[-1])
+    assert d["torch"] is False
+    assert d["rgb"] == [32, 32, 3] and d["finite"] and d["labels"] == [128, 128]
+    for k in ("rgb", "depth", "opacity", "normal", "albedo", "roughness", "metallic", "semantic_logits", "diffuse",
+              "specular", "samples"):
+        assert k in d["keys"], k
+
+
+# ------------------------------------------------------------------------------------------------ numpy mirrors
+def test_rays_and_camera_reader_match_torch():
+    from toolkit.scene import generate_rays, load_scene
+
+    sc = load_scene(SAMPLE, "test")
+    cam = infer.camera_from_transforms(SAMPLE / "transforms_test.json", 3)
+    c = sc.cameras
+    assert np.allclose(cam.c2w, c.c2w[3].numpy()) and cam.width == int(c.width[3]) and cam.height == int(c.height[3])
+    assert np.allclose([cam.fx, cam.fy, cam.cx, cam.cy], [float(c.fx[3]), float(c.fy[3]), float(c.cx[3]),
+                                                          float(c.cy[3])], rtol=1e-6)
+    ref = generate_rays(c, [3], aabb=sc.aabb, near=sc.near, far=sc.far)
+    got = infer.generate_camera_rays(cam, sc.aabb.numpy(), sc.near, sc.far)
+    for k in ("origins", "directions", "near", "far", "z_scale"):
+        assert np.allclose(got[k], getattr(ref, k).numpy(), atol=2e-6, rtol=1e-6), k
+
+
+def test_sampler_and_compositing_match_torch():
+    from toolkit.render import render_weights
+    from toolkit.sampling import merge_samples, sample_fine
+
+    g = torch.Generator().manual_seed(0)
+    R, n = 40, 16
+    near = torch.rand(R, generator=g)
+    far = near + 0.1 + 2 * torch.rand(R, generator=g)
+    far[3] = near[3] - 0.1  # a ray that misses
+    u = torch.linspace(0, 1, n + 1)
+    edges = near[:, None] + (torch.maximum(far, near) - near)[:, None] * u
+    pdf = torch.rand(R, n, generator=g) * (torch.rand(R, n, generator=g) > 0.5)
+    pdf[5] = 0.0  # all-zero row: uniform
+    counts = torch.randint(0, 9, (R,), generator=g)
+    t_ref, r_ref = sample_fine(edges, pdf, counts, perturb=False)
+    t_got, r_got = infer._sample_fine(edges.numpy(), pdf.numpy(), counts.numpy())
+    assert np.array_equal(r_got, r_ref.numpy()) and np.allclose(t_got, t_ref.numpy(), atol=1e-6)
+    t_c = 0.5 * (edges[:, :-1] + edges[:, 1:])
+    keep = torch.rand(R, n, generator=g) > 0.6
+    ray_c, k_c = torch.nonzero(keep, as_tuple=True)
+    max_delta = (torch.maximum(far, near) - near) / n
+    ps, order = merge_samples(t_c[ray_c, k_c], ray_c, t_ref, r_ref, R, max_delta, near, far)
+    s0, s1, ri, order_np = infer._merge(t_c[ray_c, k_c].numpy(), ray_c.numpy(), t_got, r_got, max_delta.numpy(),
+                                        near.numpy(), far.numpy())
+    assert np.array_equal(ri, ps.ray_indices.numpy())
+    assert np.allclose(s0, ps.t_starts.numpy(), atol=1e-6) and np.allclose(s1, ps.t_ends.numpy(), atol=1e-6)
+    dens = torch.rand(len(ps), generator=g) * 5
+    w_ref, _, _ = render_weights(dens, ps.deltas, ps.ray_indices, R)
+    w_got = infer.render_weights(dens.numpy(), (s1 - s0), ri, R)
+    assert np.allclose(w_got, w_ref.numpy(), atol=1e-6)
+
+
+def test_background_and_occupancy_match_torch(bundle):
+    from toolkit.pipeline import Background
+    from toolkit.train import load_run
+
+    run = load_run(bundle["run"], with_weights=False)
+    m = infer.load_model(bundle["out"], threads=1)
+    g = torch.Generator().manual_seed(1)
+    d = torch.nn.functional.normalize(torch.randn(2000, 3, generator=g), dim=-1)
+    d[:3] = torch.tensor([[0.0, 0, 1], [0, 0, -1], [0, 1, 0]])  # poles and the seam
+    with torch.no_grad():
+        assert np.allclose(m.background_radiance(d.numpy()), run.background(d).numpy(), atol=1e-6)
+        env = Background("env", (0.3, 0.5, 0.7), resolution=(8, 16))
+        env.raw.uniform_(-2, 2, generator=g)
+        m2 = infer.FieldModel.__new__(infer.FieldModel)
+        m2.background = {"mode": "env", "env_map": env.env_map().numpy()}
+        assert np.allclose(infer.FieldModel.background_radiance(m2, d.numpy()), env(d).numpy(), atol=1e-6)
+    lo, hi = run.occupancy.aabb
+    pts = lo - 0.1 + torch.rand(20000, 3, generator=g) * (hi - lo + 0.2)
+    assert np.array_equal(m.occupied(pts.numpy()), run.occupancy.occupied(pts).numpy())
+
+
+def test_relighting_through_sh_input(bundle):
+    m = infer.load_model(bundle["out"], threads=1)
+    pts = np.tile(m.aabb.mean(0), (64, 1)).astype(np.float32) + np.linspace(-0.2, 0.2, 64, dtype=np.float32)[:, None]
+    d = np.tile(np.array([[0.0, 0.6, -0.8]], np.float32), (64, 1))
+    a = m.query(pts, d)
+    b = m.query(pts, d, sh=m.sh * 2.0)
+    assert np.allclose(a["albedo"], b["albedo"]) and not np.allclose(a["colour"], b["colour"])
+    with pytest.raises(infer.InferError, match=r"sh must be \[9, 3\]"):
+        m.query(pts, d, sh=np.zeros(27, np.float32))
+    with pytest.raises(infer.InferError, match=r"must both be \[N, 3\]"):
+        m.query(pts[:, :2], d)
+
+
+# ------------------------------------------------------------------------------------------------ errors
+def test_missing_files_give_clear_messages(bundle, tmp_path):
+    with pytest.raises(infer.InferError, match="export directory not found"):
+        infer.load_model(tmp_path / "nope")
+    partial = tmp_path / "partial"
+    shutil.copytree(bundle["out"], partial)
+    (partial / "occupancy.npz").unlink()
+    with pytest.raises(infer.InferError, match=r"missing occupancy.npz.*dars export-onnx"):
+        infer.load_model(partial)
+    (partial / "field_int8.onnx").unlink()
+    shutil.copy(bundle["out"] / "occupancy.npz", partial / "occupancy.npz")
+    with pytest.raises(infer.InferError, match=r"field_int8.onnx not found.*--precision fp32,int8"):
+        infer.load_model(partial, "int8")
+    with pytest.raises(infer.InferError, match="precision='bf16'"):
+        infer.load_model(partial, "bf16")
+    (partial / "background.npz").write_bytes(b"not a zip")
+    with pytest.raises(infer.InferError, match="could not read the export"):
+        infer.load_model(partial)
+    (partial / "segment.onnx").unlink()
+    with pytest.raises(infer.InferError, match="segment.onnx not found.*dars priors segment"):
+        infer.infer_segment(partial, [np.zeros((8, 8, 3), np.uint8)])
+    with pytest.raises(infer.InferError, match="light.onnx not found"):
+        infer.infer_light(tmp_path, [np.zeros((8, 8, 3), np.uint8)])
+    with pytest.raises(infer.InferError, match="photo not found"):
+        infer.infer_segment(bundle["out"], [tmp_path / "nope.png"])
+    with pytest.raises(infer.InferError, match="frame index 99 out of range"):
+        infer.camera_from_transforms(SAMPLE / "transforms_test.json", 99)
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+def test_cli_infer_camera_segment_light_and_errors(bundle, tmp_path):
+    exe = [sys.executable, "-m", "toolkit.cli", "infer", str(bundle["out"])]
+    r = subprocess.run(exe + ["--camera", f"{SAMPLE}:test:0", "--out", str(tmp_path / "v.png"), "--json",
+                              "--threads", "1"], capture_output=True, text=True, cwd=ROOT, env=_env(), timeout=300)
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)
+    assert (tmp_path / "v.png").is_file() and (tmp_path / "v_albedo.png").is_file() and "semantic" in d["files"]
+    assert abs(d["psnr"] - bundle["meta"]["parity"]["render"]["psnr_onnx"]) < 0.05
+    photo = str(SAMPLE / "test" / "r_001.png")
+    r = subprocess.run(exe + ["--segment", photo, "--out", str(tmp_path / "seg"), "--json"], capture_output=True,
+                       text=True, cwd=ROOT, env=_env(), timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "seg" / "r_001_labels.png").is_file() and json.loads(r.stdout)["pixels_per_class"]
+    if (bundle["out"] / "light.onnx").is_file():
+        r = subprocess.run(exe + ["--light", photo, "--json"], capture_output=True, text=True, cwd=ROOT, env=_env(),
+                           timeout=300)
+        assert r.returncode == 0, r.stderr
+        assert np.asarray(json.loads(r.stdout)["coeffs"]).shape == (1, 9, 3)
+    r = subprocess.run([sys.executable, "-m", "toolkit.cli", "infer", str(tmp_path / "none"), "--camera",
+                        f"{SAMPLE}:test:0", "--out", str(tmp_path / "x.png")], capture_output=True, text=True,
+                       cwd=ROOT, env=_env(), timeout=300)
+    assert r.returncode == 2 and "export directory not found" in r.stderr, r.stderr
+    r = subprocess.run(exe + ["--camera", f"{SAMPLE}:test", "--out", str(tmp_path / "x.png")], capture_output=True,
+                       text=True, cwd=ROOT, env=_env(), timeout=300)
+    assert r.returncode == 2 and "SCENE:SPLIT:INDEX" in r.stderr, r.stderr

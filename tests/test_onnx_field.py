@@ -1,0 +1,223 @@
+"""ONNX export of a trained run (export/field_onnx.py): checker, parity on random and real inputs, the rendered
+sample test view within 0.05 dB of torch, reduced precision, segmenter/light networks, errors and the CLI."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("onnxruntime")
+onnx = pytest.importorskip("onnx")
+
+from _onnx_bundle import ROOT, SAMPLE, build_bundle, light_available, small_config  # noqa: E402
+from export.field_onnx import (PBR_OUTPUTS, RADIANCE_OUTPUTS, FieldExportConfig, FieldOnnxModule,  # noqa: E402
+                               _TorchHashGrid, export_onnx_models)
+from export.onnx import OnnxParityError  # noqa: E402
+from toolkit._checks import ConfigError, DarsError  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="session")
+def bundle(tmp_path_factory):
+    if not (SAMPLE / "transforms_train.json").is_file():
+        pytest.skip("bundled sample not rendered yet (samples/gallery)")
+    return build_bundle(tmp_path_factory.getbasetemp() / "onnx_gallery")
+
+
+@pytest.fixture(scope="module")
+def radiance_run(tmp_path_factory):
+    """A standard-NeRF (radiance head) run on the tiny synthetic scene, a few steps."""
+    from synthetic import make_scene
+    from toolkit.train import train
+
+    root = tmp_path_factory.mktemp("onnx_tiny")
+    scene = make_scene(root / "scene", n_train=8, n_test=2, size=24)
+    run = root / "run"
+    train(scene, run, small_config(steps=12, batch_rays=512, occupancy_resolution=16, occupancy_warmup=4,
+                                   baseline="nerf"), progress_bar=False, log=lambda m: None)
+    return run
+
+
+# ------------------------------------------------------------------------------------------------ bundle + checker
+def test_bundle_files_checker_opset_and_metadata(bundle):
+    out, meta = bundle["out"], bundle["meta"]
+    for name in ("field.onnx", "field_fp16.onnx", "field_int8.onnx", "segment.onnx", "occupancy.npz",
+                 "background.npz", "metadata.json"):
+        assert (out / name).is_file(), f"{name} missing from {sorted(p.name for p in out.iterdir())}"
+    for f in sorted(out.glob("*.onnx")):
+        model = onnx.load(str(f))
+        onnx.checker.check_model(model, full_check=True)
+        opset = next(o.version for o in model.opset_import if o.domain in ("", "ai.onnx"))
+        assert opset <= 17, f"{f.name} has opset {opset}"
+    field = onnx.load(str(out / "field.onnx"))
+    ops = {n.op_type for n in field.graph.node}
+    assert "GridSample" not in ops and {"Gather", "Mod"} <= ops, sorted(ops)
+    props = {p.key: p.value for p in field.metadata_props}
+    for k in ("dars.conventions", "dars.l_env", "dars.aabb", "dars.density_scale", "dars.version", "dars.opset",
+              "dars.inputs", "dars.outputs", "dars.sh_order", "dars.sh_constants"):
+        assert k in props, f"metadata_props lacks {k}"
+    assert "OpenGL" in props["dars.conventions"] and "+z up" in props["dars.conventions"]
+    assert np.asarray(json.loads(props["dars.l_env"])).shape == (9, 3)
+    assert [i.name for i in field.graph.input] == ["points", "view_dirs", "sh"]
+    assert [o.name for o in field.graph.output] == list(PBR_OUTPUTS)
+    n_dim = field.graph.input[0].type.tensor_type.shape.dim[0]
+    assert n_dim.dim_param == "N", "the batch axis must be dynamic"
+    assert meta["opset"] == 17 and meta["shading"] == "pbr" and meta["render_sampler"]["dars_on_device"] is False
+    occ = np.load(out / "occupancy.npz")
+    r = int(occ["resolution"])
+    assert np.unpackbits(occ["mask_bits"], count=r ** 3).shape == (r ** 3,)
+    assert str(np.load(out / "background.npz")["mode"]) in ("env", "constant", "learned")
+
+
+# ------------------------------------------------------------------------------------------------ parity
+def test_field_parity_random_and_real_inputs(bundle):
+    f = bundle["meta"]["parity"]["field"]
+    assert f["n_random"] >= 4096 and f["n_real"] > 500
+    for check in ("random", "real"):
+        assert set(f[check]) == set(PBR_OUTPUTS)
+        for k, v in f[check].items():
+            bound = f[f"{check}_scaled"][k] if k == "density" else v
+            assert bound <= 1e-4, f"{check}/{k}: onnxruntime vs torch {v:.3g}"
+
+
+def test_field_parity_fresh_batch_against_torch(bundle):
+    """Independent of the report: a new batch size (dynamic N) through ORT vs the torch module."""
+    from export.infer import make_session
+    from toolkit.train import load_run
+
+    run = load_run(bundle["run"], with_weights=False)
+    module = FieldOnnxModule(run.field, "pbr").eval()
+    g = torch.Generator().manual_seed(5)
+    lo, hi = run.train_scene.aabb
+    pts = lo + torch.rand(777, 3, generator=g) * (hi - lo)
+    dirs = torch.nn.functional.normalize(torch.randn(777, 3, generator=g), dim=-1)
+    sh = run.l_env.reshape(9, 3) * 1.3  # relit: the sh input is live, not baked in
+    with torch.no_grad(), _TorchHashGrid(run.field):
+        ref = module(pts, dirs, sh)
+    got = make_session(bundle["out"] / "field.onnx", 1).run(None, {"points": pts.numpy(), "view_dirs": dirs.numpy(),
+                                                                   "sh": sh.numpy()})
+    for name, r, o in zip(PBR_OUTPUTS, ref, got):
+        err = np.abs(o - r.numpy()) / np.maximum(1.0, np.abs(r.numpy())) if name == "density" else np.abs(o - r.numpy())
+        assert err.max() <= 1e-4, f"{name}: {err.max():.3g}"
+    assert np.allclose(got[PBR_OUTPUTS.index("colour")], got[PBR_OUTPUTS.index("diffuse")]
+                       + got[PBR_OUTPUTS.index("specular")], atol=1e-6)
+
+
+def test_sample_test_view_within_005_db_of_torch(bundle):
+    r = bundle["meta"]["parity"]["render"]
+    assert r["view"] == "test:0"
+    assert r["delta_db"] <= 0.05, f"onnx {r['psnr_onnx']:.4f} dB vs torch {r['psnr_torch']:.4f} dB"
+    assert r["psnr_onnx_vs_torch"] > 60.0, r
+    assert r["max_abs_diff"]["samples"] == 0.0, "the numpy sampler must pick the same samples as torch"
+    for k in ("rgb", "albedo", "diffuse", "specular", "opacity", "normal", "roughness", "metallic"):
+        assert r["max_abs_diff"][k] < 1e-4, (k, r["max_abs_diff"][k])
+    assert r["max_abs_diff"]["depth"] < 1e-3
+    assert "psnr_torch_dars" in r, "a DARS run reports the torch render with DARS on as well"
+
+
+def test_reduced_precision_variants_measured(bundle):
+    v = bundle["meta"]["parity"]["variants"]
+    size32 = (bundle["out"] / "field.onnx").stat().st_size
+    for p, max_ratio in (("fp16", 0.6), ("int8", 0.35)):
+        assert v[p]["status"] == "exported", v[p]
+        assert v[p]["bytes"] < max_ratio * size32, (p, v[p]["bytes"], size32)
+        assert v[p]["psnr_vs_fp32"] > 40.0, (p, v[p]["psnr_vs_fp32"])
+        assert abs(v[p]["delta_db"]) < 0.5, (p, v[p]["delta_db"])
+    # fp16 keeps the hash-grid addressing in float32 (points are not rounded to 11 bits) and stores the table in fp16
+    m = onnx.load(str(bundle["out"] / "field_fp16.onnx"))
+    table = max(m.graph.initializer, key=lambda t: int(np.prod(t.dims)))
+    assert table.data_type == onnx.TensorProto.FLOAT16
+    users = [n for n in m.graph.node if "points" in n.input]
+    assert users and all(n.op_type != "Cast" for n in users), "points must reach the encoding in float32"
+
+
+def test_segmenter_and_light_networks(bundle):
+    from export.infer import infer_segment
+    from toolkit.scene import load_scene
+    from toolkit.segment import load_segmenter
+
+    meta = bundle["meta"]
+    assert meta["segment"]["status"] == "exported" and meta["segment"]["max_abs_err"] <= 1e-4
+    sc = load_scene(SAMPLE, "test")
+    img = sc.load_image(1)
+    lab = infer_segment(bundle["out"], [(img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)], threads=1)[0]
+    with torch.no_grad():
+        ref = load_segmenter(bundle["segmenter"])((img * 255).round()[None] / 255).argmax(1)[0].numpy()
+    assert lab.shape == ref.shape and (lab == ref).mean() > 0.999
+    if not light_available():
+        assert meta["light"]["status"] == "unavailable" and meta["light"]["reason"]
+        return
+    from export.infer import infer_light
+    from toolkit.lightnet import load_lightnet, predict_sh
+
+    assert meta["light"]["status"] == "exported", meta["light"]
+    photos = [sc.load_image(i) for i in (0, 2)]
+    got = infer_light(bundle["out"], [p.permute(1, 2, 0).numpy() for p in photos], threads=1)
+    ref = predict_sh(load_lightnet(bundle["light"]), torch.stack(photos)).numpy()
+    assert np.abs(got - ref).max() < 1e-4, np.abs(got - ref).max()
+
+
+def test_missing_segmenter_is_reported_with_reason(radiance_run, tmp_path):
+    rep = export_onnx_models(radiance_run, tmp_path / "o", cfg=FieldExportConfig(threads=1, check_render=False))
+    assert rep.segment["status"] == "unavailable" and "segmenter.pt" in rep.segment["reason"]
+    assert not (tmp_path / "o" / "segment.onnx").exists()
+
+
+# ------------------------------------------------------------------------------------------------ radiance runs
+def test_radiance_run_exports_radiance_graph(radiance_run, tmp_path):
+    rep = export_onnx_models(radiance_run, tmp_path / "o", cfg=FieldExportConfig(threads=1))
+    m = onnx.load(str(tmp_path / "o" / "field.onnx"))
+    assert [i.name for i in m.graph.input] == ["points", "view_dirs"]
+    assert [o.name for o in m.graph.output] == list(RADIANCE_OUTPUTS)
+    assert max(v for k, v in rep.field["real"].items() if k != "density") <= 1e-4
+    assert rep.render["delta_db"] <= 0.05, rep.render
+
+
+# ------------------------------------------------------------------------------------------------ errors
+def test_parity_failure_raises_loudly(radiance_run, tmp_path):
+    with pytest.raises(OnnxParityError, match="differs from torch"):
+        export_onnx_models(radiance_run, tmp_path / "o", cfg=FieldExportConfig(tol=1e-12, threads=1))
+    assert (tmp_path / "o" / "field.onnx").is_file(), "the file is kept for inspection"
+    assert not (tmp_path / "o" / "metadata.json").exists(), "a failed export must not look complete"
+
+
+def test_bad_inputs(tmp_path, radiance_run):
+    with pytest.raises(DarsError, match="RUN directory not found"):
+        export_onnx_models(tmp_path / "nope", tmp_path / "o")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DarsError, match="is not a training run"):
+        export_onnx_models(tmp_path / "empty", tmp_path / "o")
+    with pytest.raises(ConfigError, match=r"precision \['bf16'\]"):
+        export_onnx_models(radiance_run, tmp_path / "o", precision=("fp32", "bf16"))
+    with pytest.raises(ConfigError, match="parity view test:9"):
+        export_onnx_models(radiance_run, tmp_path / "o", cfg=FieldExportConfig(parity_index=9, threads=1))
+    with pytest.raises(ConfigError, match="tol=0"):
+        FieldExportConfig(tol=0)
+
+
+def test_cli_export_onnx_json_and_errors(radiance_run, tmp_path):
+    exe = [sys.executable, "-m", "toolkit.cli"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run(exe + ["export-onnx", str(radiance_run), "--out", str(tmp_path / "o"), "--json",
+                              "--threads", "1", "--precision", "int8"], capture_output=True, text=True, cwd=ROOT,
+                       env=env, timeout=600)
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)  # only JSON on stdout
+    assert d["opset"] == 17 and d["render"]["delta_db"] <= 0.05 and d["variants"]["int8"]["status"] == "exported"
+    r = subprocess.run(exe + ["export-onnx", str(tmp_path / "missing"), "--out", str(tmp_path / "o2")],
+                       capture_output=True, text=True, cwd=ROOT, env=env, timeout=300)
+    assert r.returncode == 2 and "RUN directory not found" in r.stderr, r.stderr
+    r = subprocess.run(exe + ["export-onnx", str(radiance_run), "--out", str(tmp_path / "o3"), "--view", "test"],
+                       capture_output=True, text=True, cwd=ROOT, env=env, timeout=300)
+    assert r.returncode == 2 and "expected SPLIT:INDEX" in r.stderr, r.stderr
