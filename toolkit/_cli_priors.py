@@ -471,6 +471,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="fix this image's gain to 1 (default: geometric-mean gain 1)")
     q.set_defaults(func=cmd_colour)
 
+    from . import _cli_light  # stage 4, the light network
+
+    if _cli_light.register not in PRIORS_SUBCOMMANDS:
+        PRIORS_SUBCOMMANDS.append(_cli_light.register)
     for register in PRIORS_SUBCOMMANDS:
         _register(sub, register, None)
     try:  # the SH-probe engineer's module, when present

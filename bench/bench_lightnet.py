@@ -1,0 +1,176 @@
+"""Train the light estimation network on rendered lightings and report the held-out Env-light L2 (eq. 36).
+
+Prints the network's error on **held-out lightings** (never seen in training: a whole probe map and unseen random
+skies) next to two baselines — (a) the training-set mean SH, (b) the SH of each image's own mean colour — plus the
+trainer's grey-ambient default, the ratios, a per-source breakdown, and the same figures on the bundled sample
+(``samples/gallery``, whose lighting — the ``pisa`` probe — is held out by default). ``--save FILE`` writes the
+weights and ``FILE`` with ``.json``: the commands and every figure.
+
+Usage (1 thread; the data set is cached outside the repo)::
+
+    DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 OMP_NUM_THREADS=1 \\
+    .venv/bin/python samples/render_lightings.py --seed 0                # ~2 min -> ~/.cache/dars/lightnet/...
+    .venv/bin/python samples/render_lightings.py --seed 1 --rotations-per-probe 0 --train-skies 0 --mixtures 0 \
+        --suns 0 --out ~/.cache/dars/lightnet/gallery_heldout_s1.npz      # a second, untouched held-out set
+    OMP_NUM_THREADS=1 .venv/bin/python bench/bench_lightnet.py --arch small --save toolkit/weights/lightnet_small.pt \
+        --eval-data ~/.cache/dars/lightnet/gallery_heldout_s1.npz
+    # the paper's network (hours on one CPU core; minutes on a GPU):
+    .venv/bin/python bench/bench_lightnet.py --arch resnet34 --steps 8000 --save /tmp/lightnet_resnet34.pt
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+DEFAULT_DATA = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "dars" / "lightnet" / "gallery_lightings_s0.npz"
+
+
+def evaluate_on_scene(model, scene_path: Path, train_mean_sh) -> dict | None:
+    """Env-light L2 of the mean prediction over each split of a scene with GT SH (None without the scene)."""
+    import torch
+
+    from toolkit.lightnet import aggregate_sh, mean_colour_sh, predict_sh
+    from toolkit.metrics import env_light_l2
+    from toolkit.scene import list_splits, load_scene
+
+    if not (scene_path / "transforms_train.json").is_file():
+        return None
+    out = {}
+    for split in [s for s in ("train", "test") if s in list_splits(scene_path)]:
+        sc = load_scene(scene_path, split)
+        if sc.sh is None:
+            return None
+        imgs = torch.stack([sc.load_image(i) for i in range(len(sc))])
+        per = predict_sh(model, imgs)
+        gt = sc.sh.float()
+        out[split] = {
+            "views": len(sc),
+            "network_mean": float(env_light_l2(aggregate_sh(per, "mean"), gt)),
+            "network_median": float(env_light_l2(aggregate_sh(per, "median"), gt)),
+            "network_per_image": float(env_light_l2(per, gt[None].expand_as(per)).mean()),
+            "train_mean_sh": float(env_light_l2(train_mean_sh.float(), gt)),
+            "mean_colour": float(env_light_l2(aggregate_sh(mean_colour_sh(imgs)), gt)),
+        }
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", default=str(DEFAULT_DATA), help=f"data set from samples/render_lightings.py (default {DEFAULT_DATA})")
+    ap.add_argument("--arch", default="small", choices=["small", "resnet18", "resnet34"])
+    ap.add_argument("--steps", type=int, default=4000)
+    ap.add_argument("--batch-size", type=int, default=32)
+    ap.add_argument("--lr", type=float, default=2e-3)
+    ap.add_argument("--exposure-jitter", type=float, default=0.5)
+    ap.add_argument("--shift-px", type=int, default=3)
+    ap.add_argument("--loss", default="huber", choices=["l2", "huber"])
+    ap.add_argument("--huber-delta", type=float, default=1.0)
+    ap.add_argument("--output-range", default=None, choices=["absolute", "image"], help="default: the preset's (image)")
+    ap.add_argument("--dc-max", type=float, default=None, help="upper end of L00 (default: the preset's)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--eval-data", default=None, metavar="NPZ",
+                    help="also evaluate on the held-out views of this data set (e.g. one generated with another --seed "
+                         "and no training lightings: a clean test set that no design decision looked at)")
+    ap.add_argument("--sample", default=str(REPO / "samples" / "gallery"), help="scene with GT SH to evaluate on too")
+    ap.add_argument("--save", default=None, metavar="FILE.pt", help="write the weights here and the figures to FILE.json")
+    ap.add_argument("--half", action="store_true", help="store the weights as float16")
+    ap.add_argument("--json", action="store_true", help="print only the figures as JSON on stdout")
+    args = ap.parse_args(argv)
+
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from toolkit._checks import DarsError
+    from toolkit.lightnet import (TrainLightNetConfig, evaluate_lightnet, lightnet_config, load_light_dataset,
+                                  save_lightnet, train_lightnet)
+
+    try:
+        ds = load_light_dataset(args.data)
+    except DarsError as e:
+        print(f"bench_lightnet: error: {e}", file=sys.stderr)
+        return 2
+    train, test = ds.split("train"), ds.split("test")
+    over = ({"output_range": args.output_range} if args.output_range else {}) | ({"dc_max": args.dc_max} if args.dc_max is not None else {})
+    cfg = TrainLightNetConfig(arch=lightnet_config(args.arch, **over), loss=args.loss, huber_delta=args.huber_delta, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
+                              exposure_jitter=args.exposure_jitter, shift_px=args.shift_px, seed=args.seed)
+    t0 = time.time()
+    model, hist = train_lightnet(ds, cfg)
+    ev = evaluate_lightnet(model, test, hist.train_mean_sh)
+    ev_train = evaluate_lightnet(model, train, hist.train_mean_sh)
+    sample = evaluate_on_scene(model, Path(args.sample), hist.train_mean_sh)
+    ev_extra = None
+    if args.eval_data:
+        extra = load_light_dataset(args.eval_data)
+        ev_extra = evaluate_lightnet(model, extra.split("test"), hist.train_mean_sh)
+    cmd = "bench/bench_lightnet.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    figures = {
+        "command": cmd,
+        "data": {"path": str(args.data), "command": ds.meta.get("command"), "views": len(ds), "train_views": len(train),
+                 "test_views": len(test), "train_lightings": int(train.lighting.unique().numel()),
+                 "test_lightings": int(test.lighting.unique().numel()), "render_seconds": ds.meta.get("seconds"),
+                 "size": ds.meta.get("size"), "spp": ds.meta.get("spp"), "holdout": ds.meta.get("plan", {}).get("holdout_probe")},
+        "arch": asdict(model.cfg), "parameters": model.num_parameters(), "train_seconds": round(hist.seconds, 1),
+        "train_config": {k: v for k, v in asdict(cfg).items() if k != "arch"},
+        "final_loss": float(sum(hist.losses[-100:]) / max(len(hist.losses[-100:]), 1)),
+        "heldout": ev.to_json(), "train": {k: getattr(ev_train, k) for k in ("network", "train_mean_sh", "mean_colour")},
+        "sample": sample,
+        "eval_data": None if ev_extra is None else {"path": str(args.eval_data), "command": extra.meta.get("command"),
+                                                    **ev_extra.to_json()},
+        "env_light_l2": "eq. 36: ||pred - gt||_2 over the 27 coefficients, mean over held-out images",
+    }
+    if args.save:
+        path = Path(args.save)
+        save_lightnet(path, model, {"training_command": cmd, "data_command": ds.meta.get("command"),
+                                    "heldout_env_light_l2": ev.network, "half": args.half})
+        figures["weights"] = {"path": str(path), "bytes": path.stat().st_size}
+        from toolkit.io import write_json
+
+        write_json(path.with_suffix(".json"), figures)
+    if args.json:
+        sys.stdout.write(json.dumps(figures, indent=2) + "\n")
+        return 0
+    print(f"data: {len(train)} train views ({figures['data']['train_lightings']} lightings), {len(test)} held-out views "
+          f"({figures['data']['test_lightings']} lightings, held-out probe: {figures['data']['holdout']}), "
+          f"{figures['data']['size']} px {figures['data']['spp']} spp, rendered in {figures['data']['render_seconds']} s")
+    print(f"net: {args.arch}, {model.num_parameters() / 1e6:.3f} M parameters; trained {args.steps} steps in "
+          f"{hist.seconds:.0f} s (final loss {figures['final_loss']:.4f})")
+    print(f"\nEnv-light L2 on held-out lightings ({ev.images} images, {ev.lightings} lightings), lower is better:")
+    rows = [("network (per image)", ev.network), ("network (mean over a lighting's views)", ev.network_per_lighting),
+            ("baseline (a) training-set mean SH", ev.train_mean_sh), ("baseline (b) image mean colour", ev.mean_colour),
+            ("trainer's grey ambient (2x (b))", ev.grey_ambient)]
+    for name, v in rows:
+        print(f"  {name:<42} {v:8.4f}   x{v / ev.network:5.2f} of the network's")
+    print("  per source: " + "; ".join(f"{s} ({d['images']} img): net {d['network']:.3f}, (a) {d['train_mean_sh']:.3f}, "
+                                       f"(b) {d['mean_colour']:.3f}" for s, d in ev.per_source.items()))
+    print(f"  training views: net {ev_train.network:.4f}, (a) {ev_train.train_mean_sh:.4f}, (b) {ev_train.mean_colour:.4f}")
+    if ev_extra is not None:
+        print(f"\nEnv-light L2 on the held-out lightings of {args.eval_data} ({ev_extra.images} images, "
+              f"{ev_extra.lightings} lightings): network {ev_extra.network:.4f} (per lighting "
+              f"{ev_extra.network_per_lighting:.4f}); (a) {ev_extra.train_mean_sh:.4f} "
+              f"(x{ev_extra.train_mean_sh / ev_extra.network:.2f}); (b) {ev_extra.mean_colour:.4f} "
+              f"(x{ev_extra.mean_colour / ev_extra.network:.2f}); grey ambient {ev_extra.grey_ambient:.4f}")
+        print("  per source: " + "; ".join(f"{s} ({d['images']} img): net {d['network']:.3f}, (a) {d['train_mean_sh']:.3f}, "
+                                           f"(b) {d['mean_colour']:.3f}" for s, d in ev_extra.per_source.items()))
+    if sample:
+        for split, d in sample.items():
+            print(f"sample {args.sample} [{split}, {d['views']} views]: net mean {d['network_mean']:.4f}, median "
+                  f"{d['network_median']:.4f}, per image {d['network_per_image']:.4f}; (a) {d['train_mean_sh']:.4f}, "
+                  f"(b) {d['mean_colour']:.4f}")
+    if args.save:
+        print(f"wrote {figures['weights']['path']} ({figures['weights']['bytes'] / 1e6:.2f} MB) and "
+              f"{Path(args.save).with_suffix('.json')}")
+    print(f"total {time.time() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
