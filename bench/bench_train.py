@@ -2,7 +2,8 @@
 
 Cases (``--case``, default ``all``):
 
-* ``sample``   — the bundled gallery, ``fast`` preset: test PSNR and albedo MAE after 2, 5 and 10 minutes
+* ``sample``   — the bundled gallery, ``fast`` preset with the light prior (``dars priors light``, as the demo): test
+  PSNR, normal MAE and albedo MAE after 2, 5 and 10 minutes
   (snapshots of one 10-minute run); same-run baseline: ``--baseline nerf`` (PSNR only).
 * ``lego``     — NeRF-synthetic Lego at 400 px (100 train views), PSNR on ``val`` after 5 and 15 minutes, full model
   and ``--baseline nerf``.
@@ -63,13 +64,19 @@ def _eval_psnr(run_dir: Path, split: str, checkpoint: Path | None, views: list[i
     run = load_run(run_dir, checkpoint)
     sc = load_scene(run.scene_path, split)
     idx = views if views is not None else list(range(len(sc)))
-    ps, maes = [], []
+    ps, maes, nmae = [], [], []
     t0 = time.time()
     for i in idx:
         o = render_image(run.field, sc.cameras, i, run.cfg.render_sampler, run.occupancy, run.l_env, run.background,
                          sc.aabb, run.cfg.shading, run.dars_for(sc.cameras.c2w[i]), near=sc.near, far=sc.far,
                          deferred=run.cfg.deferred)
         ps.append(float(psnr(linear_to_srgb(o["rgb"].clamp(0, 1)).permute(2, 0, 1), sc.load_image(i))))
+        if sc.has_extra("normal"):
+            gt_n = sc.load_extra(i, "normal").permute(1, 2, 0)
+            m_n = gt_n.norm(dim=-1) > 0.5
+            if m_n.any():
+                n = torch.nn.functional.normalize(o["normal"], dim=-1)
+                nmae.append(float(torch.rad2deg(torch.acos((n * gt_n).sum(-1).clamp(-1, 1)[m_n])).mean()))
         if "albedo" in o and sc.has_extra("albedo") and sc.has_extra("semantic"):
             mask = material_mask(sc.load_extra(i, "semantic"), sc.load_extra(i, "depth") if sc.has_extra("depth") else None)
             if mask.any():
@@ -77,6 +84,8 @@ def _eval_psnr(run_dir: Path, split: str, checkpoint: Path | None, views: list[i
     res = {"psnr": sum(ps) / len(ps), "views": len(idx), "render_s_per_view": (time.time() - t0) / len(idx)}
     if maes:
         res["albedo_mae"] = sum(maes) / len(maes)
+    if nmae:
+        res["normal_mae_deg"] = sum(nmae) / len(nmae)
     return res
 
 
@@ -120,6 +129,9 @@ def case_quality(name: str, scene: str, minutes: list[float], split: str, views,
             ratio = [r["milestones"][m]["psnr"] - results[base]["milestones"][m]["psnr"] for m in minutes]
             print(f"  {vname} vs {base}: " + ", ".join(f"{d:+.2f} dB @{m:g} min" for d, m in zip(ratio, minutes)))
     for vname, r in results.items():
+        if any("normal_mae_deg" in r["milestones"][m] for m in minutes):
+            print(f"  {vname} normal MAE: " + ", ".join(f"{r['milestones'][m].get('normal_mae_deg', float('nan')):.1f} deg @{m:g} min"
+                                                        for m in minutes))
         if any("albedo_mae" in r["milestones"][m] for m in minutes):
             print(f"  {vname} albedo MAE: " + ", ".join(f"{r['milestones'][m].get('albedo_mae', float('nan')):.4f} @{m:g} min"
                                                         for m in minutes))
@@ -184,22 +196,34 @@ def main() -> int:
     ap.add_argument("--case", default="all", choices=["all", "sample", "lego", "tiny", "throughput"])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=str(ROOT / "bench" / "out"))
+    ap.add_argument("--variants", default="both", choices=["both", "full", "nerf"],
+                    help="quality cases: train the full model, the --baseline nerf model, or both (default)")
     ap.add_argument("--lego-views", type=int, default=20, help="evaluate Lego on every (100 / N)-th val view")
     args = ap.parse_args()
     out = Path(args.out)
     results: dict = {}
+
+    def pick(variants: dict[str, list[str]]) -> dict[str, list[str]]:
+        if args.variants == "both":
+            return variants
+        return {k: v for k, v in variants.items() if ("--baseline" in v) == (args.variants == "nerf")}
+
     cases = ["throughput", "tiny", "sample", "lego"] if args.case == "all" else [args.case]
     for c in cases:
         if c == "sample":
+            priors = out / "sample" / "priors"     # the light network's estimate, as `make demo` does
+            subprocess.run([PY, "-m", "toolkit.cli", "priors", "light", "samples/gallery", "--out", str(priors / "light"),
+                            "--force", "--json"], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
             results[c] = case_quality("sample", "samples/gallery", [2, 5, 10], "test", None, args.threads, out,
-                                      {"full (fast)": [], "standard NeRF (fast)": ["--baseline", "nerf"]})
+                                      pick({"full (fast)": ["--priors", str(priors)],
+                                            "standard NeRF (fast)": ["--baseline", "nerf"]}))
         elif c == "tiny":
             f = SHARED / "tiny_lego" / "tiny_lego_100.npz"
             if not f.is_file():
                 print(f"[tiny] skipped: {f} not present")
                 continue
             results[c] = case_quality("tiny", str(f), [3, 5, 10], "test", None, args.threads, out,
-                                      {"full (fast)": [], "standard NeRF (fast, --baseline nerf)": ["--baseline", "nerf"]},
+                                      pick({"full (fast)": [], "standard NeRF (fast, --baseline nerf)": ["--baseline", "nerf"]}),
                                       reference=TENSORF_TINY)
         elif c == "lego":
             d = SHARED / "nerf_synthetic" / "lego"
@@ -208,12 +232,12 @@ def main() -> int:
                 continue
             step = max(1, 100 // args.lego_views)
             results[c] = case_quality("lego", str(d), [5, 15], "val", list(range(0, 100, step)), args.threads, out,
-                                      {"full (fast)": [], "standard NeRF (fast)": ["--baseline", "nerf"]})
+                                      pick({"full (fast)": [], "standard NeRF (fast)": ["--baseline", "nerf"]}))
         elif c == "throughput":
             results[c] = case_throughput(args.threads, out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"bench_train_{args.case}.json").write_text(json.dumps(results, indent=2, default=str))
-    print(f"\nfigures written to {out / f'bench_train_{args.case}.json'}")
+    (out / f"bench_train_{args.case}_{args.variants}.json").write_text(json.dumps(results, indent=2, default=str))
+    print(f"\nfigures written to {out / f'bench_train_{args.case}_{args.variants}.json'}")
     return 0
 
 

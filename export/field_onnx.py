@@ -125,7 +125,7 @@ class OnnxModelsReport:
         field: parity of ``field.onnx``: ``{"random": {output: max abs err}, "real": {...}, "max_abs_err",
             "max_scaled_err", "n_random", "n_real", "op_types": {op: count}}``.
         render: parity of a rendered view (``psnr_onnx``, ``psnr_torch``, ``delta_db``, ``psnr_onnx_vs_torch``,
-            ``max_abs_diff``, ``seconds_onnx``, ``seconds_torch``, ``view``; ``psnr_torch_dars`` when DARS is on).
+            ``max_abs_diff``, ``frac_pixels_over_1e-4``, ``seconds_onnx``, ``seconds_torch``, ``view``; ``psnr_torch_dars`` when DARS is on).
         variants: per reduced precision: file, size, max abs error per output, PSNR vs fp32 and vs ground truth.
         segment: ``{"status": "exported" | "unavailable", "reason" | "path", ...}``.
         light: same for the light network.
@@ -314,10 +314,10 @@ def _op_types(path: Path) -> dict[str, int]:
 
 
 def _export_segmenter(run, out_dir: Path, opset: int, cfg: FieldExportConfig) -> dict:
-    pt = Path(cfg.segmenter) if cfg.segmenter else run.train_scene.priors_dir("segment") / "segmenter.pt"
+    pt = Path(cfg.segmenter) if cfg.segmenter else run.priors_dir("segment") / "segmenter.pt"
     if not pt.is_file():
         return {"status": "unavailable",
-                "reason": f"no trained built-in segmenter at {pt} (the run's scene uses provided labels or none); "
+                "reason": f"no trained built-in segmenter at {pt} (the run used provided labels or none); "
                           "train one with `dars priors segment SCENE --backend builtin` and re-export"}
     from toolkit.segment import load_segmenter
 

@@ -122,3 +122,24 @@ def test_cli_train_and_render(tiny, tmp_path, capsys):
             "depth.png"} <= names
     assert main(["train", str(tiny), "--out", str(tmp_path / "d")]) == 2
     assert "training length" in capsys.readouterr().err
+
+
+def test_normal_losses_point_normals_out_of_the_surface():
+    """Orientation loss: zero for normals facing the camera, (n·d)² for back-facing ones; L_eikonal: zero when the
+    normal equals −∇σ/‖∇σ‖ and maximal (4) when it is the opposite."""
+    from toolkit.losses import normal_consistency_loss, orientation_loss
+
+    d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])       # rays looking down −z at a floor (normal +z)
+    w = torch.tensor([1.0, 3.0])
+    up, down = torch.tensor([[0.0, 0.0, 1.0]] * 2), torch.tensor([[0.0, 0.0, -1.0]] * 2)
+    assert float(orientation_loss(up, d, w)) == 0.0
+    assert float(orientation_loss(down, d, w)) == pytest.approx(1.0)
+    tilted = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0, -1.0], [0.0, 0.0, 1.0]]), dim=-1)
+    assert float(orientation_loss(tilted, d, w)) == pytest.approx(0.5 * 1.0 / 4.0)   # (cos 45°)² with weight 1 of 4
+    grad = torch.tensor([[0.0, 0.0, -5.0]] * 2)                    # density grows downwards into the floor
+    assert float(normal_consistency_loss(up, grad, w)) == pytest.approx(0.0)
+    assert float(normal_consistency_loss(down, grad, w)) == pytest.approx(4.0)
+    # a descent step turns the back-facing normal towards the camera (+z)
+    n = down.clone().requires_grad_(True)
+    orientation_loss(n, d, w).backward()
+    assert (-n.grad[:, 2] > 0).all()

@@ -18,7 +18,7 @@ Heads (all on the shared feature ``h``):
 * material: albedo, roughness, metallic through sigmoids (eqs. 15–17), from [h; s] where s is the field's
   own *detached* class distribution (SPEC: no 2D label is needed at test time);
 * lighting: a residual Δl(x) [9, 3] added to the global SH ``l_env`` (from [h; l_env]) — spatially varying
-  light for spotlights and shadows, kept small by a regulariser in the loss;
+  light for spotlights and shadows, bounded by ½|L00| per channel (tanh) and kept small by a regulariser;
 * radiance: a plain view-dependent colour from [h; γ(d)] with L=4 — used only by the ``standard NeRF``
   baseline (``shading="radiance"``).
 
@@ -196,7 +196,10 @@ class DarsField(nn.Module):
             if l_env is not None:
                 env = l_env.reshape(1, 27).to(h).expand(h.shape[0], 27)
                 if self.light_head is not None:
-                    res = self.light_head(torch.cat([h, env], -1)).reshape(-1, 9, 3)
+                    # bounded: |Δl_k| ≤ ½·|L00| per channel (a local correction of the room's light, not a second
+                    # light source; unbounded, it can blow up to 10x the ambient level on white-background scenes)
+                    bound = 0.5 * l_env.reshape(1, 9, 3)[:, :1, :].abs().to(h) + 1e-3
+                    res = torch.tanh(self.light_head(torch.cat([h, env], -1)).reshape(-1, 9, 3)) * bound
                     out.light_residual = res
                     out.light = l_env.reshape(1, 9, 3).to(h) + res
                 else:

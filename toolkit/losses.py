@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from .scene import UNLABELLED
 
 __all__ = ["LossWeights", "rgb_l1", "psnr_loss", "ssim_loss", "material_loss", "semantic_loss",
-           "normal_consistency_loss", "light_residual_loss", "PAINTING", "METAL_TARGET", "PAINTING_ROUGHNESS"]
+           "normal_consistency_loss", "orientation_loss", "light_residual_loss", "PAINTING", "METAL_TARGET", "PAINTING_ROUGHNESS"]
 
 PAINTING = 0
 PAINTING_ROUGHNESS = 0.8
@@ -52,6 +52,8 @@ class LossWeights:
     eikonal: float = 0.01
     eikonal_start: int = 2000
     """Step after which L_eikonal is active (Table 1: 2000)."""
+    orientation: float = 0.1
+    """Ours (Ref-NeRF's orientation loss): penalises normals that face away from the camera."""
     distortion: float = 0.3
     semantic: float = 0.1
     light_reg: float = 0.01
@@ -147,6 +149,22 @@ def normal_consistency_loss(pred_normals: torch.Tensor, density_gradient: torch.
     g = -F.normalize(density_gradient, dim=-1, eps=1e-6)
     w = weights.detach()
     return ((pred_normals - g).square().sum(-1) * w).sum() / w.sum().clamp_min(1e-12)
+
+
+def orientation_loss(normals: torch.Tensor, view_dirs: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Σ w max(0, n·d)² / Σ w: a visible surface's normal cannot point away from the camera (Ref-NeRF, eq. 10).
+
+    Without it nothing fixes the normal head's sign before L_eikonal starts, and the photometric loss alone can
+    settle on inward normals whose wrong irradiance the albedo and the light residual then absorb.
+
+    Args:
+        normals: float [M, 3] unit normals (per sample or per ray).
+        view_dirs: float [M, 3] unit ray directions (camera → scene).
+        weights: float [M] compositing weights or opacities (treated as constants).
+    """
+    w = weights.detach()
+    back = (normals * view_dirs).sum(-1).clamp_min(0.0)
+    return (back.square() * w).sum() / w.sum().clamp_min(1e-12)
 
 
 def light_residual_loss(residual: torch.Tensor, l_env: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:

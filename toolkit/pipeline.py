@@ -124,6 +124,8 @@ class RenderOutputs:
     """float [S, D] shared field features of the packed samples."""
     fine_counts: torch.Tensor
     deferred: bool
+    sample_normals: torch.Tensor | None = None
+    """float [S, 3] per-sample normal-head outputs (``deferred=False``; None when deferred)."""
 
 
 def render_dars_context(train_cameras: Cameras, weight_maps: torch.Tensor, c2w: torch.Tensor, k: int) -> DarsContext:
@@ -244,7 +246,7 @@ def render_rays(
     safe = opacity.clamp_min(1e-6)
     depth = (accumulate_along_rays(weights, samples.t_mids[:, None], ri, R)[:, 0] / safe[:, 0]) * rays.z_scale
     bg = background(rays.directions)
-    diffuse = specular = albedo = rough = metal = light_res = None
+    diffuse = specular = albedo = rough = metal = light_res = sample_normals = None
     if deferred:
         feats = torch.cat([h_c, h_f])[order]
         hbar = accumulate_along_rays(weights, feats, ri, R) / safe
@@ -279,6 +281,7 @@ def render_rays(
         else:
             colour = out.radiance
         rgb = accumulate_along_rays(weights, colour, ri, R) + (1.0 - opacity) * bg
+        sample_normals = out.normal
         normal = nn.functional.normalize(accumulate_along_rays(weights, out.normal, ri, R), dim=-1, eps=1e-6)
         # normalised by opacity: a ray that is still mostly transparent carries its surface's class, not ~0 logits
         logits = accumulate_along_rays(weights, out.semantic_logits, ri, R) / safe
@@ -286,7 +289,7 @@ def render_rays(
                          albedo=albedo, roughness=rough, metallic=metal, diffuse=diffuse, specular=specular,
                          light_residual=light_res, samples_per_ray=samples.counts(), weights=weights,
                          sample_points=points, sample_ray_indices=ri, sample_density=density, sample_features=feats,
-                         fine_counts=counts, deferred=deferred)
+                         fine_counts=counts, deferred=deferred, sample_normals=sample_normals)
 
 
 @torch.no_grad()

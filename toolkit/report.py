@@ -51,7 +51,8 @@ EXTRA_COLUMNS: tuple[tuple[str, str, str, bool], ...] = (
 )
 
 _FORMATS = {k: f for k, _, f, _ in HEADLINE + EXTRA_COLUMNS}
-_LOSS_TERMS = (("loss", "L_total"), ("rgb", "L_rgb"), ("ssim", "L_ssim"), ("mat", "L_mat"), ("eikonal", "L_eikonal"),
+_LOSS_TERMS = (("loss", "L_total"), ("rgb", "L_rgb"), ("ssim", "L_ssim"), ("mat", "L_mat"),
+               ("psnr_loss", "L_psnr"), ("eikonal", "L_eikonal"), ("orientation", "L_orientation"),
                ("distortion", "L_distortion"), ("semantic", "L_semantic"), ("light_reg", "L_light_reg"),
                ("colour_reg", "L_colour_reg"), ("reproj", "L_reproj (light steps, eq. 22)"))
 _NOT_LOSSES = {"kind", "step", "elapsed", "lr", "occupancy", "psnr", "samples_per_ray", "fine_per_ray", "stage"}
@@ -132,8 +133,8 @@ def plot_training_curves(log_path: str | Path, out: str | Path) -> Path | None:
     Terms: every numeric key of the ``train`` rows that is not bookkeeping (step, time, lr, occupancy, sample
     counts), i.e. L_total, L_rgb, L_ssim, L_mat, L_eikonal (after its start step), L_distortion (the W-map
     regulariser of eq. 8, constant during training), L_semantic, L_light_reg, L_reproj (eq. 22) and any new term.
-    train.py logs the batch PSNR under ``psnr``, which overwrites the L_psnr term (eq. 27, = -PSNR of the
-    importance-weighted batch), so the last panel shows the batch PSNR (the negative of L_psnr up to the weights).
+    train.py logs L_psnr (eq. 27, −PSNR of the importance-weighted batch) as ``psnr_loss`` and the plain batch PSNR
+    as ``psnr``; the last panel shows the latter.
     """
     log_path, out = Path(log_path), Path(out)
     if not log_path.is_file():
@@ -392,8 +393,8 @@ def _eval_markdown(doc: dict, written: dict[str, Path]) -> str:
     if "curves" in written:
         L += ["![training curves](curves.png)", "",
               "Every loss term of `log.jsonl` against the step (log scale where a term spans > 20x). L_distortion is "
-              "the regulariser value of the precomputed W maps (eq. 8), constant during training. train.py logs the "
-              "batch PSNR under the key of L_psnr, so the PSNR panel stands in for −L_psnr.", ""]
+              "the regulariser value of the precomputed W maps (eq. 8), constant during training. L_psnr is the "
+              "importance-weighted −PSNR (eq. 27); the last panel is the plain batch PSNR.", ""]
     else:
         L += ["No training log (`log.jsonl`) in the run.", ""]
     s = det.get("sampling", {})

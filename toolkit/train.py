@@ -36,8 +36,8 @@ from ._checks import ConfigError, DarsError, check_choice
 from .encoding import HashGridConfig
 from .field import DarsField, FieldConfig
 from .io import atomic_write, linear_to_srgb, srgb_to_linear, write_json
-from .losses import (LossWeights, light_residual_loss, material_loss, normal_consistency_loss, psnr_loss, rgb_l1,
-                     semantic_loss, ssim_loss)
+from .losses import (LossWeights, light_residual_loss, material_loss, normal_consistency_loss, orientation_loss,
+                     psnr_loss, rgb_l1, semantic_loss, ssim_loss)
 from .pipeline import Background, DarsContext, render_rays
 from .sampling import OccupancyGrid, SamplerConfig, build_ray_sampler, neighbour_views, select_rays
 from .scene import Scene, UNLABELLED, generate_rays, load_scene
@@ -316,7 +316,13 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         albedo_gt = torch.stack([scene.load_extra(i, "albedo") for i in range(V)])
         priors["albedo_supervision"] = "ground truth"
     lin = srgb_to_linear(images) if scene.srgb else images
-    l_env, l_src = grey_ambient_sh(float(lin.mean())), "grey ambient"
+    fg = lin
+    if scene.background is not None:  # RGBA photos on a known background: the ambient level of the object only
+        bg = torch.tensor(scene.background, dtype=images.dtype).view(1, 3, 1, 1)
+        obj = ((images - bg).abs().amax(1, keepdim=True) > 0.02).expand_as(lin)
+        if bool(obj.any()):
+            fg = lin[obj]
+    l_env, l_src = grey_ambient_sh(float(fg.mean())), "grey ambient"
     light_json = _priors_dir(scene, "light", priors_root) / "light.json"
     if light_json.is_file():
         d = json.loads(light_json.read_text())
@@ -506,7 +512,9 @@ def sample_batch(state: TrainState, data: TrainData) -> Batch:
 def _to_target_space(state: TrainState, data: TrainData, rgb_linear: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
     if state.colour is not None:
         rgb_linear = state.colour(rgb_linear, views)
-    rgb_linear = rgb_linear.clamp(0.0, 1.0)
+    # clamp forward, pass the gradient straight through: a hard clamp has zero gradient where the shaded colour
+    # overshoots (e.g. a bright initial light on a white-background scene) and the run would stay saturated
+    rgb_linear = rgb_linear - (rgb_linear - rgb_linear.clamp(0.0, 1.0)).detach()
     return linear_to_srgb(rgb_linear) if data.scene.srgb else rgb_linear
 
 
@@ -554,6 +562,12 @@ def train_step(state: TrainState, data: TrainData) -> dict:
             else:
                 n_pred = state.field(out.sample_points[sel].detach(), shading="none").normal
             terms["eikonal"] = normal_consistency_loss(n_pred, grad, out.weights[sel])
+    if cfg.shading == "pbr" and lw.orientation > 0 and out.weights.numel():
+        if out.sample_normals is not None:
+            terms["orientation"] = orientation_loss(out.sample_normals, batch.rays.directions[out.sample_ray_indices],
+                                                    out.weights)
+        else:
+            terms["orientation"] = orientation_loss(out.normal, batch.rays.directions, out.opacity)
     if cfg.semantics and batch.labels is not None and lw.semantic > 0:
         terms["semantic"] = semantic_loss(out.semantic_logits, batch.labels, batch.iw)
     if out.light_residual is not None and lw.light_reg > 0 and out.weights.numel():
@@ -562,7 +576,7 @@ def train_step(state: TrainState, data: TrainData) -> dict:
     if state.colour is not None and lw.colour_reg > 0:
         terms["colour_reg"] = state.colour.regulariser()
     weight = {"rgb": lw.rgb, "ssim": lw.ssim, "mat": lw.mat, "psnr_loss": lw.psnr, "eikonal": lw.eikonal,
-              "semantic": lw.semantic, "light_reg": lw.light_reg, "colour_reg": lw.colour_reg}
+              "orientation": lw.orientation, "semantic": lw.semantic, "light_reg": lw.light_reg, "colour_reg": lw.colour_reg}
     loss = sum(weight[k] * v for k, v in terms.items())
     if not torch.isfinite(loss):
         bad = [k for k, v in terms.items() if not torch.isfinite(v)]
@@ -658,7 +672,7 @@ def _plot_curves(log_path: Path, out: Path) -> None:
     rows = [r for r in rows if r.get("kind") == "train"]
     if not rows:
         return
-    keys = [k for k in ("loss", "rgb", "ssim", "psnr_loss", "mat", "eikonal", "semantic", "light_reg", "distortion")
+    keys = [k for k in ("loss", "rgb", "ssim", "psnr_loss", "mat", "eikonal", "orientation", "semantic", "light_reg", "distortion")
             if any(k in r for r in rows)]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for k in keys:
@@ -827,6 +841,10 @@ class Run:
         if not self.cfg.render_sampler.dars or self.weight_maps is None:
             return None
         return render_dars_context(self.train_scene.cameras, self.weight_maps, c2w, self.cfg.render_sampler.n_neighbours)
+
+    def priors_dir(self, stage: str) -> Path:
+        """Where this run read (or would have read) the ``stage`` prior: ``--priors DIR`` if training had one."""
+        return _priors_dir(self.train_scene, stage, self.meta.get("priors_root"))
 
 
 def load_run(run_dir: str | Path, checkpoint: str | Path | None = None, device: str = "cpu",
