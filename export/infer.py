@@ -446,7 +446,8 @@ def render_rays(model: FieldModel, origins: np.ndarray, directions: np.ndarray, 
 
     Returns:
         float32 arrays per ray: ``rgb`` [R, 3] (linear radiance, background composited), ``depth`` [R] (metres
-        along the optical axis), ``opacity`` [R], ``normal`` [R, 3], ``semantic_logits`` [R, C], ``samples`` [R];
+        along the optical axis), ``opacity`` [R], ``normal`` [R, 3], ``semantic_logits`` [R, C] (opacity-normalised),
+        ``samples`` [R];
         for ``pbr``: ``albedo`` [R, 3], ``roughness``/``metallic`` [R] (opacity-normalised), ``diffuse``/
         ``specular`` [R, 3] (premultiplied by opacity).
     """
@@ -487,7 +488,7 @@ def render_rays(model: FieldModel, origins: np.ndarray, directions: np.ndarray, 
            "opacity": opacity[:, 0]}
     nrm = _accumulate(weights, outs["normal"], ri, R)
     res["normal"] = nrm / np.maximum(np.sqrt((nrm * nrm).sum(-1, keepdims=True)), f32(1e-6))
-    res["semantic_logits"] = _accumulate(weights, outs["semantic_logits"], ri, R)
+    res["semantic_logits"] = _accumulate(weights, outs["semantic_logits"], ri, R) / safe  # as torch: Σ w l / Σ w
     if model.shading == "pbr":
         res["albedo"] = _accumulate(weights, outs["albedo"], ri, R) / safe
         res["roughness"] = (_accumulate(weights, outs["roughness"], ri, R) / safe)[:, 0]

@@ -298,7 +298,7 @@ def merge_samples(t_a: torch.Tensor, ray_a: torch.Tensor, t_b: torch.Tensor, ray
     # one sort on a float64 key: ray index + normalised depth in [0, 1)
     span = (far - near).clamp_min(1e-9).double()
     key = r.double() + ((t.double() - near.double()[r]) / span[r]).clamp(0.0, 1.0 - 1e-9)
-    order = torch.argsort(key)
+    order = torch.argsort(key, stable=True)  # ties keep cat([a, b]) order (export/infer.py's numpy mirror does too)
     t, r = t[order], r[order]
     half = 0.5 * max_delta[r]
     same_prev = torch.cat([torch.zeros(1, dtype=torch.bool, device=t.device), r[1:] == r[:-1]])
