@@ -9,7 +9,7 @@ VENV=.venv
 STAMP="$VENV/.installed-$(cat requirements.txt pyproject.toml tools/package-lock.json toolkit/csrc/*.cpp 2>/dev/null | sha256sum | cut -c1-16)"
 [ -f "$STAMP" ] && exit 0
 
-APT_PKGS="libgomp1 libatomic1 libx11-6 libgl1 libopengl0 libegl1 libegl-mesa0 libgl1-mesa-dri libllvm19 chromium"
+APT_PKGS="libgomp1 libatomic1 libx11-6 libgl1 libopengl0 libegl1 libegl-mesa0 libgl1-mesa-dri libllvm19 chromium xvfb"
 missing=""
 for p in $APT_PKGS; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "ok installed" || missing="$missing $p"
