@@ -463,14 +463,23 @@ def display(monkeypatch):
 
 
 def test_window_opens_and_takes_a_screenshot(cube_glb, tmp_path, display):
+    """In a fresh process: Mesa aborts a process that opens a GLX window after the headless tests' EGL contexts."""
     pytest.importorskip("glfw", reason="the preview window needs glfw (pip install glfw)")
-    from viewers.lighting import resolve_sh
-    from viewers.window import run_window
-
-    asset = load_glb(cube_glb)
-    sh, _ = resolve_sh(asset)
-    shots = run_window(asset, [("asset", sh)], width=160, height=120, screenshot_dir=tmp_path, max_frames=3,
-                       keys=("3", "tab", "p"), log=lambda m: None)
+    code = f"""
+import json
+from export.gltf import load_glb
+from viewers.lighting import resolve_sh
+from viewers.window import run_window
+asset = load_glb({str(cube_glb)!r})
+sh, _ = resolve_sh(asset)
+shots = run_window(asset, [("asset", sh)], width=160, height=120, screenshot_dir={str(tmp_path)!r}, max_frames=3,
+                   keys=("3", "tab", "p"), log=lambda m: None)
+print(json.dumps([str(p) for p in shots]))
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300,
+                       env=dict(os.environ, DISPLAY=display))
+    assert r.returncode == 0, r.stderr[-2000:]
+    shots = json.loads(r.stdout.strip().splitlines()[-1])
     assert len(shots) == 1 and read_image(shots[0]).shape == (120, 160, 3)
 
 

@@ -32,6 +32,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
     q.add_argument("--albedo-supervision", action="store_true",
                    help="use the scene's ground-truth albedo maps in L_mat (eq. 20); makes albedo MAE circular")
+    q.add_argument("--scene-type", default="auto", choices=["auto", "room", "object"],
+                   help="room: photos taken inside an enclosed room (walls start as an opaque layer on the box faces "
+                        "after stage a); object: transparent start everywhere; auto: room when most cameras are "
+                        "inside the scene box and the photos are not RGBA")
     q.add_argument("--snapshots", default="", help="comma-separated minutes at which to save the field, e.g. 2,5,10")
     q.add_argument("--batch-rays", type=int, default=0, help="override rays per step")
     q.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
@@ -86,6 +90,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     if not args.resume and not args.minutes and not args.steps:
         raise DarsError("give a training length: --minutes M or --steps N")
     overrides: dict = {"seed": args.seed, "device": args.device, "minutes": args.minutes, "steps": args.steps}
+    if args.scene_type != "auto":
+        overrides["scene_type"] = args.scene_type
     if args.no_dars:
         overrides["dars"] = False
     if args.no_semantics:

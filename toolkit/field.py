@@ -69,6 +69,13 @@ class FieldConfig:
     n_classes: int = N_CLASSES
     light_residual: bool = True
     """Predict the per-point lighting residual Δl(x)."""
+    shell: float = 0.0
+    """Room prior: thickness, as a fraction of the box diagonal, of an opaque layer the density starts with on the
+    box faces in ``shell_faces`` (0: off, a transparent start everywhere). For captures taken inside an enclosed
+    room: a textureless wall then starts as a surface near its true place instead of being explained by the
+    environment behind it; the learned density moves or removes the layer where the photos disagree."""
+    shell_faces: tuple[bool, bool, bool, bool, bool, bool] = (True, True, True, True, True, True)
+    """Which faces carry the layer: (x min, y min, z min, x max, y max, z max)."""
 
     def __post_init__(self):
         if self.encoding not in ("grid", "mlp"):
@@ -76,6 +83,11 @@ class FieldConfig:
         for name in ("backbone_width", "backbone_depth", "geo_hidden", "feature_dim", "head_hidden"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"field {name}={getattr(self, name)} must be >= 1")
+        if not 0.0 <= self.shell < 0.5:
+            raise ConfigError(f"field shell={self.shell} must be in [0, 0.5) (a fraction of the box diagonal)")
+        if len(self.shell_faces) != 6:
+            raise ConfigError(f"field shell_faces needs 6 flags (x min, y min, z min, x max, y max, z max), "
+                              f"got {len(self.shell_faces)}")
 
 
 @dataclass
@@ -127,6 +139,13 @@ class DarsField(nn.Module):
         self.density_scale = float(1024.0 / (aabb[1] - aabb[0]).norm())
         """1/δ_ref: softplus outputs are densities per reference step."""
         self.density_bias = -8.0
+        self.shell_bias = 4.0
+        """Pre-activation on the box faces of the room prior (σ = 4.0/δ_ref), fading linearly to density_bias."""
+        self.register_buffer("shell_faces", torch.tensor([float(f) for f in cfg.shell_faces]), persistent=False)
+        if cfg.shell > 0:
+            # 0 … 1: how much of the layer is on; the trainer fades it in after stage (a), once the objects in the
+            # room have formed in front of it (present from the start, it is painted with what they look like)
+            self.register_buffer("shell_weight", torch.ones(()))
         if cfg.encoding == "grid":
             self.grid = HashGrid(cfg.grid, aabb)
             self.geometry = _mlp([self.grid.out_dim, cfg.geo_hidden, 1 + cfg.feature_dim])
@@ -165,7 +184,14 @@ class DarsField(nn.Module):
         else:
             h = self.backbone(positional_encoding(self._normalised(points), self.cfg.pe_freqs_position))
             raw = self.density_head(h)[:, 0]
-        sigma = nn.functional.softplus(raw + self.density_bias) * self.density_scale
+        bias = self.density_bias
+        if self.cfg.shell > 0:
+            lo, hi = self.aabb[0], self.aabb[1]
+            d = torch.cat([points - lo, hi - points], -1)            # [N, 6] distance to each face (inside ≥ 0)
+            d = torch.where(self.shell_faces > 0, d, torch.full_like(d, 1e9)).amin(-1)
+            ramp = (1.0 - d / (self.cfg.shell * float((hi - lo).norm()))).clamp(0.0, 1.0)
+            bias = bias + (self.shell_bias - self.density_bias) * self.shell_weight * ramp
+        sigma = nn.functional.softplus(raw + bias) * self.density_scale
         inside = ((points >= self.aabb[0]) & (points <= self.aabb[1])).all(-1)
         return torch.where(inside, sigma, torch.zeros_like(sigma)), h
 

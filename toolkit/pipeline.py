@@ -51,6 +51,14 @@ class Background(nn.Module):
         else:
             raise ValueError(f"background mode {mode!r}: choose constant, learned or env")
 
+    def dark_raw(self) -> torch.Tensor:
+        """Raw parameter value of a (nearly) black background of this mode (``learned``/``env``)."""
+        if self.mode == "learned":
+            return torch.full_like(self.raw, math.log(0.02 / 0.98))
+        if self.mode == "env":
+            return torch.full_like(self.raw, math.log(math.expm1(1e-4)))
+        raise ValueError("a constant background has no parameters")
+
     def env_map(self) -> torch.Tensor:
         """float [h, w, 3] linear radiance lat-long map (``env`` mode)."""
         return nn.functional.softplus(self.raw)

@@ -101,6 +101,10 @@ class TrainConfig:
     """Per-image gains (stage 2): ``auto`` = on when ``priors/colour/colour.json`` exists."""
     background: Literal["auto", "constant", "learned", "env"] = "auto"
     """``auto``: the scene's background colour for RGBA images, else a learned lat-long environment."""
+    scene_type: Literal["auto", "room", "object"] = "auto"
+    """``room``: photos taken inside an enclosed room — the density starts with an opaque layer on the box faces
+    (:attr:`FieldConfig.shell`) away from the cameras; ``object``: a transparent start everywhere. ``auto``: room
+    when most training cameras are inside the scene box and the photos are not RGBA (:func:`resolve_config`)."""
     seed: int = 0
     checkpoint_every: int = 500
     log_every: int = 25
@@ -112,6 +116,7 @@ class TrainConfig:
         check_choice(self.shading, ("pbr", "radiance"), "shading")
         check_choice(self.colour_correction, ("auto", "on", "off"), "colour_correction")
         check_choice(self.background, ("auto", "constant", "learned", "env"), "background")
+        check_choice(self.scene_type, ("auto", "room", "object"), "scene_type")
         if self.batch_rays < 16:
             raise ConfigError(f"batch_rays={self.batch_rays} must be >= 16")
         if self.steps < 0 or self.minutes < 0:
@@ -137,6 +142,8 @@ class TrainConfig:
         d = dict(d)
         fd = dict(d.pop("field"))
         fd["grid"] = HashGridConfig(**fd["grid"])
+        if "shell_faces" in fd:
+            fd["shell_faces"] = tuple(bool(f) for f in fd["shell_faces"])
         return cls(field=FieldConfig(**fd), sampler=SamplerConfig(**d.pop("sampler")),
                    render_sampler=SamplerConfig(**d.pop("render_sampler")), losses=LossWeights(**d.pop("losses")),
                    snapshot_minutes=tuple(d.pop("snapshot_minutes", ())), **d)
@@ -156,7 +163,7 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
 
     Ablation switches (Table 6): ``dars=False`` (w/o DARS), ``semantics=False`` (w/o semantic guidance),
     ``fixed_light=True``, ``mat_loss=False`` (w/o L_mat), ``baseline="nerf"`` (standard NeRF: stratified +
-    hierarchical samples, radiance head, no priors).
+    hierarchical samples, radiance head, no priors, no room prior).
     """
     check_choice(preset, PRESETS, "preset")
     if preset == "paper":
@@ -186,6 +193,7 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
         overrides.setdefault("semantics", False)
         dars, mat_loss = False, False
         overrides.setdefault("fixed_light", True)
+        overrides.setdefault("scene_type", "object")  # no room prior either: a plain transparent start
     if dars is not None:
         cfg = replace(cfg, sampler=replace(cfg.sampler, dars=bool(dars)),
                       render_sampler=replace(cfg.render_sampler, dars=bool(dars)))
@@ -197,10 +205,43 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
     return replace(cfg, **overrides)
 
 
+ROOM_SHELL = 0.03
+"""Thickness of the room prior's layer: 3 % of the box diagonal (25 cm on the gallery sample, about 1.3 coarse
+steps of the ``fast`` preset, so every ray that reaches a face puts a sample in the layer)."""
+
+
+SHELL_FADE = 0.1
+"""Fraction of the run over which the room prior's layer fades in, after stage (a)."""
+
+
+def _resolve_scene_type(cfg: TrainConfig, scene: Scene) -> TrainConfig:
+    """``scene_type`` → the field's room prior: on for a room (most cameras inside the box, opaque photos), on the
+    faces no camera comes within 1.5 layer thicknesses of (a camera inside the layer would see nothing)."""
+    kind = cfg.scene_type
+    lo, hi = scene.aabb[0], scene.aabb[1]
+    cams = scene.cameras.origins.to(lo)
+    if kind == "auto":
+        inside = ((cams >= lo) & (cams <= hi)).all(-1).float().mean()
+        kind = "room" if float(inside) > 0.5 and not _photos_have_alpha(scene) else "object"
+    if kind == "object":
+        return replace(cfg, scene_type="object", field=replace(cfg.field, shell=0.0))
+    eps = ROOM_SHELL * float((hi - lo).norm())
+    clearance = torch.cat([cams - lo, hi - cams], -1).amin(0)  # [6] closest camera to each face
+    faces = tuple(bool(c > 1.5 * eps) for c in clearance)
+    return replace(cfg, scene_type="room", field=replace(cfg.field, shell=ROOM_SHELL if any(faces) else 0.0,
+                                                         shell_faces=faces))
+
+
 def resolve_config(cfg: TrainConfig, scene: Scene) -> TrainConfig:
-    """Fill data-dependent settings: with ``auto_resolution`` the hash grid's finest level resolves a quarter of
-    the pixel footprint at the median camera distance — ``next_pow2(4 · box extent / footprint)``, clamped to
-    [256, 2048] (tiny Lego 100 px: 512; Lego 400 px: 2048; the gallery sample: 1024)."""
+    """Fill data-dependent settings:
+
+    * ``scene_type`` (``auto`` → ``room`` or ``object``) and with it the field's room prior (:data:`ROOM_SHELL`);
+    * with ``auto_resolution`` the hash grid's finest level resolves a quarter of the pixel footprint at the median
+      camera distance — ``next_pow2(4 · box extent / footprint)``, clamped to [256, 2048] (tiny Lego 100 px: 512;
+      Lego 400 px: 2048; the gallery sample: 1024).
+    """
+    if cfg.scene_type == "auto" or (cfg.scene_type == "room" and cfg.field.shell == 0.0):
+        cfg = _resolve_scene_type(cfg, scene)
     if not cfg.auto_resolution or cfg.field.encoding != "grid":
         return cfg
     cams = scene.cameras
@@ -384,17 +425,21 @@ def _border_colour(images: torch.Tensor, srgb: bool) -> tuple[float, float, floa
     return tuple(float(c) for c in lin.clamp(0.0, 1.0))
 
 
+def _photos_have_alpha(scene: Scene) -> bool:
+    """Whether the photos are RGBA (objects on a known background colour, as Blender renders): the first frame."""
+    f0 = scene.frames[0]
+    if f0.image_path is None or f0.image_path.suffix.lower() != ".png":
+        return False
+    from PIL import Image
+
+    with Image.open(f0.image_path) as im:
+        return im.mode in ("RGBA", "LA")
+
+
 def _background_for(scene: Scene, cfg: TrainConfig, images: torch.Tensor | None = None) -> Background:
     mode = cfg.background
     if mode == "auto":
-        has_alpha = False
-        f0 = scene.frames[0]
-        if f0.image_path is not None and f0.image_path.suffix.lower() == ".png":
-            from PIL import Image
-
-            with Image.open(f0.image_path) as im:
-                has_alpha = im.mode in ("RGBA", "LA")
-        mode = "constant" if has_alpha else "env"
+        mode = "constant" if _photos_have_alpha(scene) else "env"
     if mode == "constant" or images is None:
         colour = tuple(float(c) for c in srgb_to_linear(np.asarray(scene.background, np.float64)))
     else:
@@ -536,6 +581,17 @@ def train_step(state: TrainState, data: TrainData) -> dict:
     """One field step (stage a: eq. 21; stage b: eq. 23). Returns the logged scalars."""
     cfg, lw = state.cfg, state.cfg.losses
     stage_b = progress(state) >= cfg.pretrain_fraction
+    if hasattr(state.field, "shell_weight"):  # the room prior fades in over SHELL_FADE of the run after stage (a)
+        w = min(1.0, max(0.0, (progress(state) - cfg.pretrain_fraction) / SHELL_FADE))
+        if w > 0.0 and float(state.field.shell_weight) == 0.0:
+            # the environment learned the room's walls in stage (a); left as it is, the optimiser would cancel the
+            # layer wherever the environment already explains the photo. It restarts dark and relearns only what
+            # is seen through the faces without a layer (sky, open doors).
+            with torch.no_grad():
+                for p in state.background.parameters():
+                    p.copy_(state.background.dark_raw().to(p))
+                    state.optimizer.state.pop(p, None)
+        state.field.shell_weight.fill_(w)
     batch = sample_batch(state, data)
     out = _render(state, batch, state.l_env.detach())
     pred = _to_target_space(state, data, out.rgb, batch.views)
