@@ -114,6 +114,31 @@ def test_extract_sphere_level_rule_and_orientation():
     assert np.abs(mm.vertices / 1000.0 - mesh.vertices).max() < 1e-5
 
 
+def test_level_from_rays_keeps_a_soft_object_and_caps_a_sharp_one():
+    """A soft ball (σ = 8 /m inside r = 0.5: opaque to the cameras, but below ln 2/δ = 34.7 /m at δ = 2 cm) vanishes
+    under the opacity rule and is recovered at the rays' level; a sharp ball keeps the opacity rule (the cap)."""
+    from toolkit.mesh import level_from_rays, opacity_level
+
+    res, R = 100, 0.5
+    voxel = 2.0 / res
+    soft = lambda p: 8.0 * torch.sigmoid((R - torch.as_tensor(p).norm(dim=-1)) / 0.005)  # noqa: E731
+    cams = ring_cameras(n=6, dist=2.5)
+    level, rep = level_from_rays(soft, cams, BOX, voxel, n_rays=2048)
+    assert level == pytest.approx(8.0, rel=0.02) and rep["cap"] == pytest.approx(opacity_level(voxel))
+    assert 0 < rep["rays_opaque"] < rep["rays"]                      # some rays miss the ball
+    assert extract_mesh(soft, BOX, MeshConfig(resolution=res, progress=False)).num_faces == 0
+    mesh = extract_mesh(soft, BOX, MeshConfig(resolution=res, level=level, progress=False))
+    r = np.linalg.norm(mesh.vertices, axis=1)
+    assert R - 1.5 * voxel < r.mean() < R  # the level is near the ramp's top: ~4.5 ramp widths (2.3 cm) inside
+    sharp = sphere_density(R, beta=0.002)
+    level, rep = level_from_rays(sharp, cams, BOX, voxel, n_rays=1024)
+    assert level == rep["cap"] == pytest.approx(opacity_level(voxel))
+    empty, rep = level_from_rays(lambda p: torch.zeros(len(p)), cams, BOX, voxel, n_rays=256)
+    assert empty == rep["cap"] and rep["rays_opaque"] == 0
+    with pytest.raises(ValueError, match="quantile"):
+        level_from_rays(soft, cams, BOX, voxel, quantile=0.0)
+
+
 def test_extract_chunked_equals_unchunked():
     box = np.array([[-0.9, -0.6, -0.5], [0.8, 0.7, 0.6]])  # anisotropic box, sphere cut by slab planes
     fn = sphere_density(0.45, centre=(0.07, -0.03, 0.02), beta=0.02)

@@ -51,7 +51,10 @@ def _add_mesh_options(q: argparse.ArgumentParser) -> None:
     q.add_argument("--resolution", type=int, default=256,
                    help="grid cells along the longest box edge (mc), or the TSDF voxel = edge / resolution (tsdf)")
     q.add_argument("--level", type=float, default=None,
-                   help="density iso-level in 1/m (default: ln 2 / voxel, the half-opacity rule)")
+                   help="density iso-level in 1/m (default: from the training rays, see --level-quantile)")
+    q.add_argument("--level-quantile", type=float, default=0.1,
+                   help="without --level: the quantile of σ where the training rays cross half-transmittance, "
+                        "capped at ln 2 / voxel (0 = the plain half-opacity rule ln 2 / voxel)")
     q.add_argument("--faces", type=int, default=100_000, help="simplify to this many faces (0 = keep all)")
     q.add_argument("--simplify", choices=("fast", "quality"), default="fast",
                    help="fast-simplification (default) or pymeshlab quadric edge collapse")
@@ -101,8 +104,8 @@ def build_mesh(density_fn, material_fn, aabb, cameras, args) -> tuple[object, di
     """The mesh half of the pipeline with the CLI's options: extract, clean, simplify, colour. Returns (mesh, stats)."""
     import numpy as np
 
-    from .mesh import (DepthRenderConfig, MeshConfig, TsdfConfig, extract_mesh, fuse_tsdf, query_vertex_attributes,
-                       remove_floaters, remove_unseen_faces, render_depth, simplify_mesh)
+    from .mesh import (DepthRenderConfig, MeshConfig, TsdfConfig, extract_mesh, fuse_tsdf, level_from_rays,
+                       query_vertex_attributes, remove_floaters, remove_unseen_faces, render_depth, simplify_mesh)
 
     if args.resolution < 8:
         raise DarsError(f"--resolution {args.resolution} is too small (use ≥ 8)")
@@ -110,7 +113,13 @@ def build_mesh(density_fn, material_fn, aabb, cameras, args) -> tuple[object, di
     t0 = time.perf_counter()
     box = np.asarray(aabb.detach().cpu().numpy() if hasattr(aabb, "detach") else aabb, dtype=np.float64)
     if args.method == "mc":
-        mesh = extract_mesh(density_fn, box, MeshConfig(resolution=args.resolution, level=args.level, device=args.device))
+        level = args.level
+        if level is None and args.level_quantile > 0 and cameras is not None:
+            voxel = float((box[1] - box[0]).max()) / args.resolution
+            level, stats["level_from_rays"] = level_from_rays(density_fn, cameras, box, voxel,
+                                                              quantile=args.level_quantile, device=args.device)
+        mesh = extract_mesh(density_fn, box, MeshConfig(resolution=args.resolution, level=level, device=args.device))
+        stats["level"] = level
     else:
         if cameras is None:
             raise DarsError("--method tsdf needs the training cameras, but the RUN's field loader returned none")

@@ -21,6 +21,13 @@ at d = β·ln(δ / (2β ln 2)) for β ≤ δ/(2 ln 2): never more than δ/(2e ln
 whatever β, and exactly on it for β = δ/(2 ln 2). Material that never reaches σ* (fog, faint floaters) is not
 opaque at this resolution and produces no surface. ``MeshConfig.opacity_thickness`` fixes δ in metres instead of
 the voxel size (a resolution-independent level); ``MeshConfig.level`` overrides σ* outright.
+
+**The level from the photos' rays** (:func:`level_from_rays`, what ``dars export-asset`` uses). A field trained for
+minutes on a CPU is not SDF-like everywhere: some objects end up as a soft volume whose density never reaches
+ln 2/δ although it stops the rays that see it (the sample's pedestal: σ ≈ 2–10 /m where its rays cross
+half-transmittance, against σ* = 29 /m at 256³). :func:`level_from_rays` marches the training cameras' rays and
+takes a low quantile (default 10 %) of σ where each ray's transmittance crosses ½ — the surfaces the photos see —
+capped at the opacity rule, so sharp fields keep σ* and soft objects are not lost.
 """
 
 from __future__ import annotations
@@ -46,6 +53,7 @@ __all__ = [
     "SimplifyReport",
     "MeshDistance",
     "opacity_level",
+    "level_from_rays",
     "extract_mesh",
     "render_depth",
     "fuse_tsdf",
@@ -242,6 +250,60 @@ def opacity_level(voxel_size: float, opacity: float = 0.5) -> float:
     if not (voxel_size > 0 and math.isfinite(voxel_size)):
         raise ConfigError(f"voxel_size={voxel_size!r} must be a positive number of metres")
     return -math.log1p(-opacity) / voxel_size
+
+
+def level_from_rays(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndarray, voxel_size: float,
+                    quantile: float = 0.1, n_rays: int = 4096, samples: int = 256, seed: int = 0,
+                    device: str = "cpu") -> tuple[float, dict]:
+    """Iso-level from the training rays (module docstring): the ``quantile`` of σ at each ray's half-transmittance
+    crossing, capped at :func:`opacity_level` of ``voxel_size``.
+
+    Args:
+        density_fn: σ(points float [N, 3]) -> float [N], 1/metre.
+        cameras: :class:`toolkit.scene.Cameras` whose rays are marched (``n_rays`` pixels drawn uniformly, seeded).
+        aabb: float [2, 3] box the rays are clipped to, metres.
+        voxel_size: marching-cubes voxel edge, metres (the cap is ln 2 / voxel_size).
+        quantile: in (0, 1]; lower keeps softer surfaces.
+        n_rays, samples: rays marched and uniform samples per ray between box entry and exit.
+
+    Returns:
+        (level σ* in 1/metre, report ``{"level", "cap", "quantile", "rays", "rays_opaque", "sigma_quantiles"}``).
+        With no ray reaching half-transmittance the level is the cap.
+    """
+    from .scene import generate_rays
+
+    check_range(quantile, 1e-6, 1.0, "quantile")
+    cap = opacity_level(voxel_size)
+    box = torch.as_tensor(_check_aabb(aabb), dtype=torch.float32)
+    cams = cameras.to("cpu")
+    g = torch.Generator().manual_seed(seed)
+    n_pix = (cams.height * cams.width).long()
+    view = torch.multinomial(n_pix.double(), n_rays, replacement=True, generator=g)
+    pix = (torch.rand(n_rays, generator=g, dtype=torch.float64) * n_pix[view]).long()
+    sig_at = []
+    for k in view.unique().tolist():
+        rays = generate_rays(cams, [k], aabb=box)
+        sel = rays[pix[view == k]]
+        hit = sel.far > sel.near
+        if not bool(hit.any()):
+            continue
+        r = sel[torch.nonzero(hit).squeeze(-1)]
+        span = (r.far - r.near)[:, None]
+        ts = r.near[:, None] + span * (torch.arange(samples, dtype=torch.float32) + 0.5)[None] / samples
+        pts = r.origins[:, None] + r.directions[:, None] * ts[..., None]
+        sigma = np.maximum(_density(density_fn, pts.reshape(-1, 3).numpy(), device).reshape(ts.shape), 0.0)
+        tau = np.cumsum(sigma * (span.numpy() / samples), axis=1)
+        reached = tau >= math.log(2.0)
+        ok = reached.any(1)
+        first = reached.argmax(1)
+        sig_at.append(sigma[np.arange(len(r)), first][ok])
+    vals = np.concatenate(sig_at) if sig_at else np.zeros(0)
+    rep = {"cap": cap, "quantile": quantile, "rays": int(n_rays), "rays_opaque": int(vals.size)}
+    if vals.size == 0:
+        return cap, {**rep, "level": cap, "sigma_quantiles": None}
+    level = float(min(cap, np.quantile(vals, quantile)))
+    rep["sigma_quantiles"] = {str(q): float(np.quantile(vals, q)) for q in (0.05, 0.1, 0.25, 0.5)}
+    return level, {**rep, "level": level}
 
 
 def _check_aabb(aabb) -> np.ndarray:
