@@ -122,3 +122,18 @@ def test_shading_gradcheck():
     with torch.no_grad():
         sh[0] += 3.0
     assert torch.autograd.gradcheck(lambda a, r, m, sh: shade_pbr(a, r, m, n, v, sh).colour, (a, r, m, sh))
+
+
+def test_gradients_finite_at_saturated_roughness():
+    """A sigmoid roughness saturates at exactly 0 or 1 in float32; the shading's gradient must stay finite there
+    (√(1 − a) at a = 1 once made it NaN and stopped a Lego run at step 132)."""
+    logits = torch.tensor([-200.0, 40.0, 0.0], requires_grad=True)
+    r = torch.sigmoid(logits)
+    assert float(r[1].detach()) == 1.0 and float(r[0].detach()) == 0.0
+    n = torch.nn.functional.normalize(torch.tensor([[0.2, 0.1, 1.0]] * 3), dim=-1)
+    v = torch.tensor([[0.0, 0.0, 1.0]] * 3)
+    sh = torch.zeros(9, 3)
+    sh[0] = 2.0
+    sh[2] = 0.5
+    shade_pbr(torch.full((3, 3), 0.5), r, torch.full((3,), 0.3), n, v, sh).colour.sum().backward()
+    assert torch.isfinite(logits.grad).all(), logits.grad

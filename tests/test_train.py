@@ -110,6 +110,35 @@ def test_nan_guard_keeps_last_good_checkpoint(tiny, tmp_path, monkeypatch):
     assert all(torch.isfinite(v).all() for v in ck["field"].values())
 
 
+def test_non_finite_gradients_are_skipped_then_stop_the_run(tiny, tmp_path, monkeypatch):
+    """A finite loss with NaN gradients: the step is skipped (parameters untouched); MAX_BAD_STEPS in a row stop the
+    run with a clear message and the last good checkpoint."""
+    import toolkit.train as T
+
+    class NanGrad(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, x):
+            return x.clone()
+
+        @staticmethod
+        def backward(ctx, g):
+            return g * float("nan")
+
+    real, calls = T.rgb_l1, {"n": 0}
+
+    def poisoned(*a, **k):
+        calls["n"] += 1
+        out = real(*a, **k)
+        return NanGrad.apply(out) if calls["n"] in (3,) or calls["n"] > 12 else out
+
+    monkeypatch.setattr(T, "rgb_l1", poisoned)
+    with pytest.raises(TrainingDiverged, match=r"non-finite gradients .* for 5 steps in a row"):
+        train(tiny, tmp_path / "g", _small(steps=40, pretrain_fraction=1.0), progress_bar=False, log=lambda m: None)
+    ck = torch.load(tmp_path / "g" / "checkpoint.pt", weights_only=False)
+    assert ck["step"] == 15  # the single bad step 3 was skipped and the run went on; steps 13-17 stopped it
+    assert all(torch.isfinite(v).all() for v in ck["field"].values())
+
+
 def test_cli_train_and_render(tiny, tmp_path, capsys):
     from toolkit.cli import main
 

@@ -202,7 +202,9 @@ def shade_pbr(
     n_dot_v_raw = (normals * view_dirs).sum(-1, keepdim=True)
     reflected = 2.0 * n_dot_v_raw * normals - view_dirs
     a = roughness[..., None].clamp(0.0, 1.0) ** 2
-    lerp = (1.0 - a) * (torch.sqrt(1.0 - a) + a)
+    # clamped under the root: roughness = sigmoid saturates at exactly 1.0 in float32, where d√(1−a)/da is infinite
+    # and 0·∞ would make the gradient NaN (the value is the same)
+    lerp = (1.0 - a) * (torch.sqrt((1.0 - a).clamp_min(1e-12)) + a)
     reflected = torch.nn.functional.normalize(normals + lerp * (reflected - normals), dim=-1, eps=1e-8)
     y_r = sh_basis(reflected) * specular_band_attenuation(roughness)
     radiance = (y_r[..., None] * sh).sum(-2)

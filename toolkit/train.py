@@ -408,6 +408,12 @@ class TrainState:
     step: int = 0
     elapsed: float = 0.0
     snapshots_done: list = dc_field(default_factory=list)
+    bad_steps: int = 0
+    """Consecutive steps skipped for non-finite gradients (see :data:`MAX_BAD_STEPS`)."""
+
+
+MAX_BAD_STEPS = 5
+"""A step whose gradients are not finite is skipped (no update); this many in a row stop the run."""
 
 
 def _device(cfg: TrainConfig) -> torch.device:
@@ -641,7 +647,18 @@ def train_step(state: TrainState, data: TrainData) -> dict:
                                "(--lr-scale) or check the input images")
     state.optimizer.zero_grad(set_to_none=True)
     loss.backward()
-    state.optimizer.step()
+    bad = [n for g in state.optimizer.param_groups for n, p in zip([g.get("name", "?")] * len(g["params"]), g["params"])
+           if p.grad is not None and not bool(torch.isfinite(p.grad).all())]
+    if bad:
+        state.bad_steps += 1
+        state.optimizer.zero_grad(set_to_none=True)
+        if state.bad_steps >= MAX_BAD_STEPS:
+            raise TrainingDiverged(f"non-finite gradients in {sorted(set(bad))} for {state.bad_steps} steps in a row "
+                                   f"(last at step {state.step}); training stopped, the last good checkpoint is kept "
+                                   "— lower the learning rate (--lr-scale) or check the input images")
+    else:
+        state.bad_steps = 0
+        state.optimizer.step()
     with torch.no_grad():
         mse = (pred - batch.target).square().mean()
         res = {k: float(v) for k, v in terms.items()}
