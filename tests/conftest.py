@@ -5,7 +5,8 @@ import pytest
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = (ROOT / ".." / "shared" / "data").resolve()
+SHARED = Path(os.environ.get("DARS_SHARED_DATA", ROOT / ".." / "shared" / "data")).resolve()
+"""External data (NeRF Lego, fox, meshes, probes): ../shared/data beside the clone, or $DARS_SHARED_DATA."""
 SAMPLE = ROOT / "samples" / "gallery"
 
 os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1")
@@ -13,10 +14,10 @@ torch.set_num_threads(min(2, os.cpu_count() or 1))
 
 
 def shared(*parts: str) -> Path:
-    """Path under ../shared/data, or skip the test (never download)."""
+    """Path under the external data folder, or skip the test (never download)."""
     p = SHARED.joinpath(*parts)
     if not p.exists():
-        pytest.skip(f"external data not present: {p}")
+        pytest.skip(f"external data not present: {p} (set DARS_SHARED_DATA to the shared data folder)")
     return p
 
 
