@@ -44,6 +44,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--limit", type=int, default=0, help="evaluate at most N views per variant")
     q.add_argument("--lpips-weights", help="LPIPS weight file(s)/folder")
     q.add_argument("--batch-rays", type=int, default=0, help="override rays per step (every variant)")
+    q.add_argument("--priors", help="directory holding the prior stages' outputs, as dars train --priors "
+                                    "(default: <scene>/priors)")
     q.add_argument("--threads", type=int, default=0, help="CPU threads (default: all cores)")
     q.add_argument("--json", action="store_true", help="print only ablation.json on stdout")
     q.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -99,7 +101,7 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     res = run_ablation(args.scene, args.out, preset=args.preset, minutes=args.minutes, steps=args.steps, seed=args.seed,
                        variants=args.variants, overrides=overrides,
                        eval_cfg=EvalConfig(limit=args.limit, lpips_weights=args.lpips_weights), split=args.split,
-                       progress_bar=not (args.quiet or args.json), log=_log)
+                       progress_bar=not (args.quiet or args.json), log=_log, priors_root=args.priors)
     doc = res.to_json()
     if args.json:
         sys.stdout.write(json.dumps(doc, indent=2) + "\n")

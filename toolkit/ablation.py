@@ -120,6 +120,7 @@ def run_ablation(
     split: str = "test",
     progress_bar: bool = False,
     log: Callable[[str], None] | None = None,
+    priors_root: str | Path | None = None,
 ) -> AblationResult:
     """Train and evaluate the Table 6 variants under one budget; write ``ablation.json`` and ``ablation.md``.
 
@@ -136,6 +137,8 @@ def run_ablation(
         split: split to evaluate.
         progress_bar: training progress bars on stderr.
         log: progress lines (default: stderr).
+        priors_root: the prior stages' outputs every variant reads (as ``dars train --priors``; default
+            ``<scene>/priors``); variants that switch a prior off ignore it.
 
     Returns:
         :class:`AblationResult`.
@@ -193,10 +196,10 @@ def run_ablation(
                                 f"(variant {variant_of(old)}, {old.steps} steps / {old.minutes:g} min, seed {old.seed}); "
                                 "choose another --out so the variants share one budget")
             log(f"[ablate {k}/{len(names)}] {label}: run exists in {run_dir}; resuming/reusing it")
-            train(scene, run_dir, cfg, resume=True, progress_bar=progress_bar, log=log)
+            train(scene, run_dir, cfg, resume=True, progress_bar=progress_bar, log=log, priors_root=priors_root)
         else:
             log(f"[ablate {k}/{len(names)}] {label}: training ({budget}, preset {preset}, seed {seed}) -> {run_dir}")
-            train(scene, run_dir, cfg, progress_bar=progress_bar, log=log)
+            train(scene, run_dir, cfg, progress_bar=progress_bar, log=log, priors_root=priors_root)
         run = load_run(run_dir)
         log(f"[ablate {k}/{len(names)}] {label}: trained {run.step} steps in {run.elapsed / 60:.2f} min; evaluating")
         ev = evaluate_run(run, split, ecfg, log=log)
