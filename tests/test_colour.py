@@ -264,3 +264,25 @@ def test_cli_read_only_scene_and_foreign_files(tmp_path, capsys):
     # our own files are overwritten freely on the next run
     rc, out, err = _run(["priors", "colour", str(scene), "--out", str(out_dir)], capsys)
     assert rc == 0, err
+
+
+def test_training_loads_the_colour_prior(tmp_path, capsys):
+    """`dars priors colour` then `dars train`: the run starts from the estimated per-image gains, matched to its
+    frames by key (the estimate covers every split; this path once crashed on a missing ``subset``)."""
+    from toolkit.train import make_config, prepare_data
+    from toolkit.scene import load_scene
+
+    scene = write_scene(tmp_path / "scene", n_train=8, n_test=1, size=64)
+    assert _run(["priors", "colour", str(scene)], capsys)[0] == 0
+    est = ColourTransforms.from_json(scene / "priors" / "colour" / "colour.json")
+    train_scene = load_scene(scene, "train")
+    data = prepare_data(train_scene, make_config("fast", steps=2), lambda m: None, None)
+    assert data.priors_used["colour"].startswith("loaded")
+    assert data.colour_init.keys == tuple(f.key for f in train_scene.frames)
+    order = {k: i for i, k in enumerate(est.keys)}
+    want = est.gains[[order[f.key] for f in train_scene.frames]]
+    assert torch.equal(data.colour_init.gains, want)
+    part = est.subset([2, 0])
+    assert part.keys == (est.keys[2], est.keys[0]) and torch.equal(part.gains[1], est.gains[0])
+    with pytest.raises(Exception, match="out of range"):
+        est.subset([len(est)])

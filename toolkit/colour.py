@@ -180,6 +180,17 @@ class ColourTransforms:
         return ColourTransforms(torch.ones(n, 3), torch.zeros(n, 3), tuple(keys) if keys is not None else None,
                                 torch.ones(n, dtype=torch.bool))
 
+    def subset(self, indices: Sequence[int]) -> "ColourTransforms":
+        """The transforms of images ``indices`` (in that order): e.g. a training split's frames out of a whole-scene
+        estimate."""
+        idx = torch.as_tensor(list(indices), dtype=torch.long)
+        if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= len(self)):
+            raise DarsError(f"colour transforms: index {int(idx.max())} out of range for {len(self)} images")
+        return ColourTransforms(self.gains[idx].clone(), self.offsets[idx].clone(),
+                                tuple(self.keys[i] for i in idx.tolist()) if self.keys is not None else None,
+                                self.connected[idx].clone() if self.connected is not None else None,
+                                self.gauge, dict(self.stats))
+
     @property
     def log_gains(self) -> torch.Tensor:
         """float [B, 3] natural-log gains."""
