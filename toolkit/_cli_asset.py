@@ -104,7 +104,7 @@ def build_mesh(density_fn, material_fn, aabb, cameras, args) -> tuple[object, di
     """The mesh half of the pipeline with the CLI's options: extract, clean, simplify, colour. Returns (mesh, stats)."""
     import numpy as np
 
-    from .mesh import (DepthRenderConfig, MeshConfig, TsdfConfig, extract_mesh, fuse_tsdf, level_from_rays,
+    from .mesh import (DepthRenderConfig, MeshConfig, TsdfConfig, _grid_spec, extract_mesh, fuse_tsdf, level_from_rays,
                        query_vertex_attributes, remove_floaters, remove_unseen_faces, render_depth, simplify_mesh)
 
     if args.resolution < 8:
@@ -115,7 +115,7 @@ def build_mesh(density_fn, material_fn, aabb, cameras, args) -> tuple[object, di
     if args.method == "mc":
         level = args.level
         if level is None and args.level_quantile > 0 and cameras is not None:
-            voxel = float((box[1] - box[0]).max()) / args.resolution
+            voxel, _ = _grid_spec(box, args.resolution)  # the voxel extract_mesh will use
             level, stats["level_from_rays"] = level_from_rays(density_fn, cameras, box, voxel,
                                                               quantile=args.level_quantile, device=args.device)
         mesh = extract_mesh(density_fn, box, MeshConfig(resolution=args.resolution, level=level, device=args.device))

@@ -280,14 +280,12 @@ def level_from_rays(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndar
     n_pix = (cams.height * cams.width).long()
     view = torch.multinomial(n_pix.double(), n_rays, replacement=True, generator=g)
     pix = (torch.rand(n_rays, generator=g, dtype=torch.float64) * n_pix[view]).long()
+    width = cams.width[view].long()
+    rays = generate_rays(cams, view, pixels=torch.stack([pix % width, pix // width], -1), aabb=box)
+    rays = rays[torch.nonzero(rays.far > rays.near).squeeze(-1)]
     sig_at = []
-    for k in view.unique().tolist():
-        rays = generate_rays(cams, [k], aabb=box)
-        sel = rays[pix[view == k]]
-        hit = sel.far > sel.near
-        if not bool(hit.any()):
-            continue
-        r = sel[torch.nonzero(hit).squeeze(-1)]
+    for s in range(0, len(rays), 256):  # 256 rays x `samples` points per density query
+        r = rays[s:s + 256]
         span = (r.far - r.near)[:, None]
         ts = r.near[:, None] + span * (torch.arange(samples, dtype=torch.float32) + 0.5)[None] / samples
         pts = r.origins[:, None] + r.directions[:, None] * ts[..., None]

@@ -647,13 +647,15 @@ def train_step(state: TrainState, data: TrainData) -> dict:
                                "(--lr-scale) or check the input images")
     state.optimizer.zero_grad(set_to_none=True)
     loss.backward()
-    bad = [n for g in state.optimizer.param_groups for n, p in zip([g.get("name", "?")] * len(g["params"]), g["params"])
-           if p.grad is not None and not bool(torch.isfinite(p.grad).all())]
-    if bad:
+    grads = [(g.get("name", "?"), p.grad) for g in state.optimizer.param_groups for p in g["params"]
+             if p.grad is not None]
+    finite = torch.stack([torch.isfinite(gr).all() for _, gr in grads]).tolist() if grads else []  # one sync per step
+    if not all(finite):
         state.bad_steps += 1
         state.optimizer.zero_grad(set_to_none=True)
         if state.bad_steps >= MAX_BAD_STEPS:
-            raise TrainingDiverged(f"non-finite gradients in {sorted(set(bad))} for {state.bad_steps} steps in a row "
+            bad = sorted({name for (name, _), ok in zip(grads, finite) if not ok})
+            raise TrainingDiverged(f"non-finite gradients in {bad} for {state.bad_steps} steps in a row "
                                    f"(last at step {state.step}); training stopped, the last good checkpoint is kept "
                                    "— lower the learning rate (--lr-scale) or check the input images")
     else:
