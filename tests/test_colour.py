@@ -116,7 +116,13 @@ def test_recovers_exposure_and_white_balance_within_5_percent(with_poses):
     err = _relative_error(tr.gains.numpy(), true)
     assert err.max() < 0.05, f"max gain error {err.max():.4f}"  # measured ~0.5 %
     assert bool(tr.connected.all()) and tr.stats["pairs_used"] > 20
-    assert abs(float(tr.log_gains.mean(0).abs().max())) < 1e-6  # default gauge: geometric-mean gain 1
+    assert np.abs(np.median(tr.log_gains.double().numpy(), axis=0)).max() < 1e-5  # default gauge: median gain 1
+    # 6 of 16 views re-exposed: the median gauge leaves the 10 untouched ones at gain 1 without re-normalising
+    # (the mean gauge would tint them by the perturbed views' average white balance)
+    assert np.abs(tr.gains.numpy()[(true == 1).all(1)] - 1).max() < 0.03
+    mean = estimate_colour_transforms(imgs, ColourConfig(gauge="mean"), c2w=c2w if with_poses else None)
+    assert mean.gauge == "mean" and abs(float(mean.log_gains.mean(0).abs().max())) < 1e-6
+    assert _relative_error(mean.gains.numpy(), true).max() < 0.05  # the same gains up to a common factor
 
 
 def test_reference_gauge_and_isolated_image():
@@ -167,6 +173,11 @@ def test_colour_correction_module():
     with torch.no_grad():
         cc.log_gain += 0.1
     assert float(cc.regulariser().detach()) > 10 * 0.1 ** 2 * 3 * 0.99
+    # median gauge: two of five images odd, the three typical ones keep gain 1 (a mean gauge would tint them)
+    init5 = ColourTransforms(torch.tensor([[2.0, 2.0, 2.0], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0],
+                                           [2.3, 2.0, 1.7]]), torch.zeros(5, 3))
+    cc5 = ColourCorrection(5, init5)
+    torch.testing.assert_close(cc5.log_gain.exp(), init5.gains)
 
 
 def test_colour_correction_learns_gains_and_stays_gauged():
@@ -238,11 +249,13 @@ def test_cli_colour(tmp_path, capsys):
     assert rc == 0, err
     assert "gain R" in out and "train__r_007" in out
     d = json.loads((scene / "priors" / "colour" / "colour.json").read_text())
-    assert len(d["images"]) == 8 and d["gauge"] == "mean"
+    assert len(d["images"]) == 8 and d["gauge"] == "median"
     tr = ColourTransforms.from_json(scene / "priors" / "colour" / "colour.json")
     assert float((tr.gains - 1).abs().max()) < 0.05  # an unperturbed scene is consistent already
     rc, out, err = _run(["priors", "colour", str(scene), "--json", "--reference", "2"], capsys)
     assert rc == 0 and json.loads(out)["gauge"] == "reference:2"
+    rc, out, err = _run(["priors", "colour", str(scene), "--json", "--gauge", "mean", "--force"], capsys)
+    assert rc == 0 and json.loads(out)["gauge"] == "mean"
 
 
 def test_cli_read_only_scene_and_foreign_files(tmp_path, capsys):
@@ -286,3 +299,12 @@ def test_training_loads_the_colour_prior(tmp_path, capsys):
     assert part.keys == (est.keys[2], est.keys[0]) and torch.equal(part.gains[1], est.gains[0])
     with pytest.raises(Exception, match="out of range"):
         est.subset([len(est)])
+    # the gains get their own, smaller learning rate (at lr_net they random-walk several per cent in 1000 steps)
+    from toolkit.train import init_state
+
+    cfg = make_config("fast", steps=2, lr_colour=3e-5)
+    state = init_state(cfg, prepare_data(train_scene, cfg, lambda m: None, None))
+    group = next(g for g in state.optimizer.param_groups if g["name"] == "colour")
+    assert group["lr"] == 3e-5 and group["params"][0] is state.colour.log_gain
+    with pytest.raises(Exception, match="lr_colour"):
+        make_config("fast", steps=2, lr_colour=0.0)

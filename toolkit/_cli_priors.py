@@ -409,7 +409,7 @@ def cmd_colour(args: argparse.Namespace) -> int:
     from .scene import load_scene
 
     scene = load_scene(args.scene, args.split)
-    cfg = ColourConfig(detector=args.detector, gauge="reference" if args.reference is not None else "mean",
+    cfg = ColourConfig(detector=args.detector, gauge="reference" if args.reference is not None else args.gauge,
                        reference=args.reference or 0, srgb=scene.srgb, progress=True)
     d = priors_colour(scene, args.out, cfg, force=args.force)
     if args.json:
@@ -467,8 +467,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     q = sub.add_parser("colour", help="per-image exposure / white-balance gains against the scene's consensus")
     _common(q)
     q.add_argument("--detector", choices=["orb", "sift"], default="orb")
+    q.add_argument("--gauge", choices=["median", "mean"], default="median",
+                   help="median: the typical photo has gain 1 (default; robust to a few odd exposures); "
+                        "mean: the geometric-mean gain is 1")
     q.add_argument("--reference", type=int, default=None,
-                   help="fix this image's gain to 1 (default: geometric-mean gain 1)")
+                   help="fix this image's gain to 1 instead (overrides --gauge)")
     q.set_defaults(func=cmd_colour)
 
     from . import _cli_light  # stage 4, the light network

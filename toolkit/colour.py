@@ -17,9 +17,10 @@ through a per-channel gain and an optional offset::
    or near-black (<= ``clip_low``) sRGB values never vote;
 3. per pair and channel, the median log-ratio ``r_ij = median(log c_i - log c_j)`` of the votes estimates
    ``g_i - g_j`` with ``g = log gain``;
-4. a weighted, Huber-robust least-squares solve for every ``g`` per channel, with a gauge: by default the mean
-   log-gain over images is 0 (the geometric-mean gain is 1, so the consensus is the average photo), or the
-   reference image's gain is 1 (``gauge="reference"``). Images in a component of the match graph that is not
+4. a weighted, Huber-robust least-squares solve for every ``g`` per channel, with a gauge: by default the median
+   log-gain over images is 0 (``gauge="median"``: the consensus is the typical photo, and a minority of re-exposed
+   views does not shift it), or the mean (``"mean"``: the geometric-mean gain is 1), or the reference image's gain
+   is 1 (``gauge="reference"``). Images in a component of the match graph that is not
    connected to the rest get their own zero-mean gauge and are flagged (``connected=False``).
 
 Accuracy on the bundled sample (128 px, 80 views, path traced, glossy floor, glass case): 10 views re-exposed by
@@ -104,7 +105,8 @@ class ColourConfig:
             0 disables it (point samples only).
         smooth_log_gradient: pixels whose log-luminance changes by more than this per pixel are not compared
             densely (alignment errors there would bias the ratio).
-        gauge: ``"mean"`` (geometric-mean gain 1 per channel) or ``"reference"`` (``reference`` image gain 1).
+        gauge: ``"median"`` (median gain 1 per channel: the typical photo), ``"mean"`` (geometric-mean gain 1) or
+            ``"reference"`` (``reference`` image gain 1).
         reference: index of the reference image for ``gauge="reference"``.
         srgb: images are sRGB-encoded (undo the transfer first); ``False`` for linear images.
         progress: tqdm bars on stderr.
@@ -124,7 +126,7 @@ class ColourConfig:
     huber: float = 0.05
     plane_pixels: int = 200
     smooth_log_gradient: float = 0.03
-    gauge: Literal["mean", "reference"] = "mean"
+    gauge: Literal["median", "mean", "reference"] = "median"
     reference: int = 0
     srgb: bool = True
     progress: bool = False
@@ -132,8 +134,8 @@ class ColourConfig:
     def __post_init__(self):
         if self.detector not in ("sift", "orb"):
             raise ConfigError(f"detector={self.detector!r} is not valid: choose 'sift' or 'orb'")
-        if self.gauge not in ("mean", "reference"):
-            raise ConfigError(f"gauge={self.gauge!r} is not valid: choose 'mean' or 'reference'")
+        if self.gauge not in ("median", "mean", "reference"):
+            raise ConfigError(f"gauge={self.gauge!r} is not valid: choose 'median', 'mean' or 'reference'")
         if not 0 < self.ratio < 1:
             raise ConfigError(f"ratio={self.ratio} must be in (0, 1)")
         if not 0 <= self.clip_low < self.clip_high <= 1:
@@ -152,7 +154,7 @@ class ColourTransforms:
         keys: frame keys (``Frame.key``) or ``None``.
         connected: bool [B]: the image is in the main component of the match graph (else its gain is only
             fixed relative to its own component, and is 1 when it matched nothing).
-        gauge: how the overall scale is fixed (``"mean"`` or ``"reference:<i>"``).
+        gauge: how the overall scale is fixed (``"median"``, ``"mean"`` or ``"reference:<i>"``).
         stats: free-form numbers of the estimate (pairs used, residuals).
     """
 
@@ -278,23 +280,32 @@ def apply_colour_transforms(
 
 
 # ============================================================================ the trainable version
+def _median0(x: torch.Tensor) -> torch.Tensor:
+    """Per-column median of [B, C] (the mean of the two middle values for even B), keepdim."""
+    s = x.sort(0).values
+    b = x.shape[0]
+    return 0.5 * (s[(b - 1) // 2] + s[b // 2]).unsqueeze(0)
+
+
 class ColourCorrection(nn.Module):
     """Per-image colour transforms as parameters, for joint optimisation with the field.
 
     ``forward(rgb, image_indices)`` maps the field's linear radiance (the consensus) to each photo's appearance:
     ``exp(log_gain[i]) * rgb + offset[i]``, which is what the photometric loss compares with the photo.
 
-    Gauge: the mean log-gain over images is pushed to 0 per channel (``regulariser``), so the shared albedo and
-    lighting, not the per-image gains, carry the scene's absolute colour: a gain common to all images is the only
-    direction in which gains and albedo could trade, and that direction is pinned. ``init`` is re-gauged to zero
-    mean on construction.
+    Gauge: ``init`` is re-gauged on construction so its per-channel *median* log-gain is 0 — the consensus is the
+    typical photo, so a minority of odd exposures (or one white-balance shift applied to a few views) does not tint
+    the field, and views rendered without a gain (test views) look like the majority. During training the common
+    shift ``mean_b (log_gain[b] - log_gain_init[b])`` is pushed to 0 per channel (``regulariser``): a gain common to
+    all images is the only direction in which gains and albedo could trade, and that direction is pinned to the
+    estimate's gauge. Without ``init`` (identity) both gauges are the identity.
 
     Args:
         n_images: B.
         init: starting transforms (e.g. from :func:`estimate_colour_transforms`), or ``None`` for identity.
         learn_offsets: also learn per-image offsets (initialised from ``init``).
         weight_init: weight of ``mean((log_gain - log_gain_init)^2)``.
-        weight_mean: weight of ``sum_c (mean_b log_gain[b, c])^2``.
+        weight_mean: weight of ``sum_c (mean_b (log_gain - log_gain_init)[b, c])^2``.
         weight_offset: weight of ``mean(offset^2)``.
     """
 
@@ -304,7 +315,7 @@ class ColourCorrection(nn.Module):
         if init is not None and len(init) != n_images:
             raise ShapeError(f"init has {len(init)} transforms for n_images={n_images}")
         lg = init.log_gains.float() if init is not None else torch.zeros(n_images, 3)
-        lg = lg - lg.mean(0, keepdim=True) if n_images else lg
+        lg = lg - _median0(lg) if n_images else lg
         off = init.offsets.float() if init is not None else torch.zeros(n_images, 3)
         self.log_gain = nn.Parameter(lg.clone())
         self.register_buffer("log_gain_init", lg.clone())
@@ -324,9 +335,9 @@ class ColourCorrection(nn.Module):
         return self.log_gain[image_indices].exp() * rgb + self.offset[image_indices]
 
     def regulariser(self) -> torch.Tensor:
-        """Scalar: deviation from the initial gains + the zero-mean gauge + small offsets."""
+        """Scalar: deviation from the initial gains + no common shift from them (the gauge) + small offsets."""
         r = self.weight_init * (self.log_gain - self.log_gain_init).square().mean()
-        r = r + self.weight_mean * self.log_gain.mean(0).square().sum()
+        r = r + self.weight_mean * (self.log_gain - self.log_gain_init).mean(0).square().sum()
         if self.learn_offsets:
             r = r + self.weight_offset * self.offset.square().mean()
         return r
@@ -335,7 +346,7 @@ class ColourCorrection(nn.Module):
         """The current parameters as :class:`ColourTransforms` (detached, CPU)."""
         n = self.log_gain.shape[0]
         return ColourTransforms(self.log_gain.detach().exp().cpu(), self.offset.detach().cpu().clone(), self.keys,
-                                torch.ones(n, dtype=torch.bool), "mean")
+                                torch.ones(n, dtype=torch.bool), "median")
 
 
 # ============================================================================ estimation
@@ -522,7 +533,7 @@ def estimate_colour_transforms(
                                               cfg)
     stats = {"pairs_tried": len(pairs), "pairs_used": len(obs_i), "matches_used": int(n_matches),
              "residual_rms_log": resid, "isolated": [int(k) for k in np.flatnonzero(~connected)]}
-    gauge = "mean" if cfg.gauge == "mean" else f"reference:{cfg.reference}"
+    gauge = cfg.gauge if cfg.gauge != "reference" else f"reference:{cfg.reference}"
     return ColourTransforms(torch.from_numpy(np.exp(logg)).float(), torch.zeros(B, 3), tuple(keys) if keys else None,
                             torch.from_numpy(connected), gauge, stats)
 
@@ -576,7 +587,7 @@ def _solve_log_gains(n, ii, jj, r, w, cfg: ColourConfig):
     """Weighted Huber least squares for g (n x 3) with g_i - g_j ~ r_ij and one gauge row per component."""
     comp = _components(n, ii, jj)
     labels, sizes = np.unique(comp, return_counts=True)
-    main = labels[np.argmax(sizes)] if cfg.gauge == "mean" else comp[cfg.reference]
+    main = comp[cfg.reference] if cfg.gauge == "reference" else labels[np.argmax(sizes)]
     connected = comp == main
     P = len(ii)
     A = np.zeros((P + len(labels), n))
@@ -603,6 +614,8 @@ def _solve_log_gains(n, ii, jj, r, w, cfg: ColourConfig):
             robust = np.where(a <= cfg.huber, 1.0, cfg.huber / np.maximum(a, 1e-12))
         g[:, c] = sol
         resid_all.append(res)
+    if cfg.gauge == "median":  # differences are gauge-free: shift the main component so its median log-gain is 0
+        g[connected] -= np.median(g[connected], axis=0, keepdims=True)
     rr = np.concatenate(resid_all) if P else np.zeros(0)
     return g, connected, float(np.sqrt(np.mean(rr ** 2))) if rr.size else 0.0
 
