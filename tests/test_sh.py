@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import SHARED
 from toolkit._checks import DarsError, SceneError, ShapeError
 from toolkit.sh import (
     SH_IRRADIANCE_BANDS,
@@ -38,7 +39,7 @@ from toolkit.sh import (
     sh_to_threejs_lightprobe,
 )
 
-ENVMAPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "envmaps"
+ENVMAPS = SHARED / "envmaps"  # ../shared/data beside the clone, or $DARS_SHARED_DATA
 PROBES = sorted(ENVMAPS.glob("*.hdr")) if ENVMAPS.is_dir() else []
 
 
