@@ -282,7 +282,7 @@ def test_cli_read_only_scene_and_foreign_files(tmp_path, capsys):
 def test_training_loads_the_colour_prior(tmp_path, capsys):
     """`dars priors colour` then `dars train`: the run starts from the estimated per-image gains, matched to its
     frames by key (the estimate covers every split; this path once crashed on a missing ``subset``)."""
-    from toolkit.train import make_config, prepare_data
+    from toolkit.train import init_state, make_config, prepare_data
     from toolkit.scene import load_scene
 
     scene = write_scene(tmp_path / "scene", n_train=8, n_test=1, size=64)
@@ -300,8 +300,6 @@ def test_training_loads_the_colour_prior(tmp_path, capsys):
     with pytest.raises(Exception, match="out of range"):
         est.subset([len(est)])
     # the gains get their own, smaller learning rate (at lr_net they random-walk several per cent in 1000 steps)
-    from toolkit.train import init_state
-
     cfg = make_config("fast", steps=2, lr_colour=3e-5)
     state = init_state(cfg, prepare_data(train_scene, cfg, lambda m: None, None))
     group = next(g for g in state.optimizer.param_groups if g["name"] == "colour")

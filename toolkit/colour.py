@@ -280,13 +280,6 @@ def apply_colour_transforms(
 
 
 # ============================================================================ the trainable version
-def _median0(x: torch.Tensor) -> torch.Tensor:
-    """Per-column median of [B, C] (the mean of the two middle values for even B), keepdim."""
-    s = x.sort(0).values
-    b = x.shape[0]
-    return 0.5 * (s[(b - 1) // 2] + s[b // 2]).unsqueeze(0)
-
-
 class ColourCorrection(nn.Module):
     """Per-image colour transforms as parameters, for joint optimisation with the field.
 
@@ -315,7 +308,7 @@ class ColourCorrection(nn.Module):
         if init is not None and len(init) != n_images:
             raise ShapeError(f"init has {len(init)} transforms for n_images={n_images}")
         lg = init.log_gains.float() if init is not None else torch.zeros(n_images, 3)
-        lg = lg - _median0(lg) if n_images else lg
+        lg = lg - lg.quantile(0.5, dim=0, keepdim=True) if n_images else lg  # median (mean of the middle two)
         off = init.offsets.float() if init is not None else torch.zeros(n_images, 3)
         self.log_gain = nn.Parameter(lg.clone())
         self.register_buffer("log_gain_init", lg.clone())
