@@ -60,6 +60,7 @@ __all__ = [
     "gradient_magnitude",
     "semantic_edges",
     "minmax_normalise",
+    "quantile_normalise",
     "smooth_weight_map",
     "distortion_loss",
     "weight_overlay",
@@ -228,6 +229,23 @@ def minmax_normalise(x: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
     lo = flat.amin(1).view(-1, 1, 1)
     hi = flat.amax(1).view(-1, 1, 1)
     return (x - lo) / (hi - lo).clamp_min(eps)
+
+
+def quantile_normalise(x: torch.Tensor) -> torch.Tensor:
+    """Per-image rank normalisation of float [B, H, W]: each value becomes the fraction of the image's pixels below
+    it (ties share their mean rank), so the result is uniform on [0, 1] in every image.
+
+    The sampler reads W this way (SPEC stage 6): a threshold τ = 0.7 then selects the top 30 % of *this photo's*
+    distortion rather than an absolute level that few pixels of a smooth W reach, and per-ray budgets spread over
+    their whole range. A constant image maps to 0.5 everywhere.
+    """
+    B = x.shape[0]
+    flat = x.reshape(B, -1)
+    n = flat.shape[1]
+    srt, _ = flat.sort(dim=1)
+    lo = torch.searchsorted(srt, flat.contiguous(), right=False)
+    hi = torch.searchsorted(srt, flat.contiguous(), right=True)
+    return ((lo + hi).to(x.dtype) / (2.0 * n)).reshape_as(x)
 
 
 def _laplacian_eigenvalues(n: int, dtype, device) -> torch.Tensor:

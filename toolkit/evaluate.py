@@ -306,7 +306,8 @@ def training_sample_counts(run, index: int, chunk: int | None = None) -> dict[st
         raise DarsError(f"training_sample_counts: view {index} out of range (the run has {len(cams)} training views)")
     sampler = replace(run.cfg.sampler, perturb=False)
     h, w = int(cams.height[index]), int(cams.width[index])
-    rays = generate_rays(cams, [index], aabb=scene.aabb.to(dev), near=scene.near, far=scene.far)
+    bounds = run.field.space if run.cfg.field.contraction else scene.aabb.to(dev)
+    rays = generate_rays(cams, [index], aabb=bounds, near=scene.near, far=scene.far)
     dars = ray_w = None
     if sampler.dars and run.weight_maps is not None:
         wm = run.weight_maps.to(dev)

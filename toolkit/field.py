@@ -38,6 +38,7 @@ from torch import nn
 from ._checks import ConfigError, check_shape
 from .encoding import HashGrid, HashGridConfig, positional_encoding
 from .io import srgb_to_linear
+from .space import SceneSpace, box_radius, contract
 
 __all__ = ["FieldConfig", "FieldOutputs", "DarsField", "N_CLASSES", "load_field_callables"]
 
@@ -76,6 +77,11 @@ class FieldConfig:
     environment behind it; the learned density moves or removes the layer where the photos disagree."""
     shell_faces: tuple[bool, bool, bool, bool, bool, bool] = (True, True, True, True, True, True)
     """Which faces carry the layer: (x min, y min, z min, x max, y max, z max)."""
+    contraction: bool = True
+    """Unbounded space (:mod:`toolkit.space`): positions beyond the scene box are contracted into a shell, so walls,
+    floor and sky beyond the box are modelled too. False: the bounded model (nothing exists outside the box)."""
+    far_radius: float = 64.0
+    """With contraction: the field ends (and rays stop) where the box-normalised L∞ radius reaches this."""
 
     def __post_init__(self):
         if self.encoding not in ("grid", "mlp"):
@@ -136,6 +142,7 @@ class DarsField(nn.Module):
         self.cfg = cfg
         aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3)
         self.register_buffer("aabb", aabb.clone())
+        grid_box = SceneSpace(aabb, cfg.contraction, cfg.far_radius).grid_aabb
         self.density_scale = float(1024.0 / (aabb[1] - aabb[0]).norm())
         """1/δ_ref: softplus outputs are densities per reference step."""
         self.density_bias = -8.0
@@ -147,7 +154,7 @@ class DarsField(nn.Module):
             # room have formed in front of it (present from the start, it is painted with what they look like)
             self.register_buffer("shell_weight", torch.ones(()))
         if cfg.encoding == "grid":
-            self.grid = HashGrid(cfg.grid, aabb)
+            self.grid = HashGrid(cfg.grid, grid_box)
             self.geometry = _mlp([self.grid.out_dim, cfg.geo_hidden, 1 + cfg.feature_dim])
             fdim = cfg.feature_dim
         else:
@@ -170,8 +177,15 @@ class DarsField(nn.Module):
         self.radiance_head = _mlp([fdim + dir_dim, hh, hh, 3])
 
     # ------------------------------------------------------------------ geometry
+    @property
+    def space(self) -> SceneSpace:
+        """The space the field lives in (box, contraction, far radius), on the field's device."""
+        return SceneSpace(self.aabb, self.cfg.contraction, self.cfg.far_radius)
+
     def _normalised(self, points: torch.Tensor) -> torch.Tensor:
-        """World points -> [-1, 1]^3 relative to the scene box."""
+        """World points -> [-1, 1]^3 (the scene box; with contraction the whole of space, the box in [-½, ½]^3)."""
+        if self.cfg.contraction:
+            return contract(points, self.aabb) * 0.5
         lo, hi = self.aabb[0], self.aabb[1]
         return (points - lo) / (hi - lo) * 2.0 - 1.0
 
@@ -179,7 +193,7 @@ class DarsField(nn.Module):
         """(density [N], shared feature h [N, D]) at world points [N, 3]."""
         check_shape(points, "N 3", "points")
         if self.cfg.encoding == "grid":
-            out = self.geometry(self.grid(points))
+            out = self.geometry(self.grid(contract(points, self.aabb) if self.cfg.contraction else points))
             raw, h = out[:, 0], out[:, 1:]
         else:
             h = self.backbone(positional_encoding(self._normalised(points), self.cfg.pe_freqs_position))
@@ -192,7 +206,13 @@ class DarsField(nn.Module):
             ramp = (1.0 - d / (self.cfg.shell * float((hi - lo).norm()))).clamp(0.0, 1.0)
             bias = bias + (self.shell_bias - self.density_bias) * self.shell_weight * ramp
         sigma = nn.functional.softplus(raw + bias) * self.density_scale
-        inside = ((points >= self.aabb[0]) & (points <= self.aabb[1])).all(-1)
+        r = box_radius(points, self.aabb)
+        if self.cfg.contraction:
+            # density per *contracted* length: beyond the box a unit of grid spans r² times more metres, so the
+            # same head output means the same opacity per grid step everywhere (and the far shell does not start
+            # as an opaque fog: at r = 64 one stratum spans ~4000 reference steps)
+            sigma = sigma / r.clamp_min(1.0).square()
+        inside = r <= (self.cfg.far_radius if self.cfg.contraction else 1.0)
         return torch.where(inside, sigma, torch.zeros_like(sigma)), h
 
     def density(self, points: torch.Tensor) -> torch.Tensor:

@@ -908,3 +908,52 @@ def sample_mesh_surface(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor
         dtype = vertices.dtype if vertices.is_floating_point() else torch.float32
         return torch.as_tensor(pts, dtype=dtype, device=vertices.device)
     return torch.from_numpy(pts)
+
+
+def mesh_depth_error(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor | np.ndarray, cameras, index: int,
+                     gt_depth: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, float]:
+    """Depth error of a triangle mesh seen from a camera against a ground-truth depth map.
+
+    Every pixel's ray is cast against the mesh (Open3D's CPU ray caster); its depth along the optical axis is
+    compared with ``gt_depth`` where both exist. Meant for exported assets (GLB) against a scene's test views.
+
+    Args:
+        vertices: float [V, 3] world positions (metres, the scene's frame).
+        faces: int [F, 3].
+        cameras: :class:`toolkit.scene.Cameras`.
+        index: which camera.
+        gt_depth: float [H, W] metres along the optical axis (0 = no surface).
+        mask: optional bool [H, W] pixels to score.
+
+    Returns:
+        ``{"median": m, "mean": m, "p90": m, "coverage": fraction of scored GT pixels the mesh covers,
+        "pixels": n}`` (errors in metres; NaN when the mesh covers no scored pixel).
+    """
+    import open3d as o3d
+
+    from .scene import generate_rays
+
+    v = vertices.detach().cpu().numpy() if isinstance(vertices, torch.Tensor) else np.asarray(vertices)
+    f = faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)
+    check_shape(v, "V 3", "vertices")
+    check_shape(f, "F 3", "faces")
+    h, w = int(cameras.height[index]), int(cameras.width[index])
+    check_shape(gt_depth, f"{h} {w}", "gt_depth")
+    rays = generate_rays(cameras, [index])
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    q = np.concatenate([rays.origins.cpu().numpy(), rays.directions.cpu().numpy()], -1).astype(np.float32)
+    t_hit = scene.cast_rays(o3d.core.Tensor(q))["t_hit"].numpy()
+    depth = t_hit * rays.z_scale.cpu().numpy()
+    gt = gt_depth.detach().cpu().numpy().reshape(-1)
+    valid = gt > 0
+    if mask is not None:
+        valid &= mask.detach().cpu().numpy().reshape(-1).astype(bool)
+    hit = np.isfinite(depth)
+    both = valid & hit
+    err = np.abs(depth[both] - gt[both])
+    if err.size == 0:
+        return {"median": float("nan"), "mean": float("nan"), "p90": float("nan"), "coverage": 0.0,
+                "pixels": int(valid.sum())}
+    return {"median": float(np.median(err)), "mean": float(err.mean()), "p90": float(np.quantile(err, 0.9)),
+            "coverage": float(both.sum() / max(1, valid.sum())), "pixels": int(valid.sum())}

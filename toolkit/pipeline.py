@@ -134,6 +134,9 @@ class RenderOutputs:
     deferred: bool
     sample_normals: torch.Tensor | None = None
     """float [S, 3] per-sample normal-head outputs (``deferred=False``; None when deferred)."""
+    sample_s: tuple[torch.Tensor, torch.Tensor] | None = None
+    """(start, end) float [S] of each sample's interval in normalised ray coordinates s ∈ [0, 1] (uniform in the
+    strata: contracted arc length, or metres when bounded), for :func:`toolkit.losses.compactness_loss`."""
 
 
 def render_dars_context(train_cameras: Cameras, weight_maps: torch.Tensor, c2w: torch.Tensor, k: int) -> DarsContext:
@@ -211,7 +214,8 @@ def render_rays(
     n = sampler.n_coarse
     dev = rays.origins.device
     mode = "radiance" if shading == "radiance" else "pbr"
-    edges = stratified_edges(rays, n, sampler.perturb, generator)
+    space = field.space
+    edges = stratified_edges(rays, n, sampler.perturb, generator, space)
     coarse, stratum = coarse_samples(rays, edges, occupancy)
     pts_c = coarse.points(rays.origins, rays.directions)
     sig_c, h_c, out_c = _query(field, pts_c, rays.directions[coarse.ray_indices], l_env, mode, deferred, outputs_hook)
@@ -238,15 +242,27 @@ def render_rays(
                                           sampler.budget_max)
             else:
                 counts[idx] = sampler.n_fine
-        t_f, ray_f = sample_fine(edges, pdf, counts, sampler.perturb, generator)
+        t_f, ray_f, k_f = sample_fine(edges, pdf, counts, sampler.perturb, generator, return_strata=True)
     else:
         t_f = edges.new_zeros(0)
-        ray_f = torch.zeros(0, dtype=torch.long, device=dev)
+        ray_f = k_f = torch.zeros(0, dtype=torch.long, device=dev)
     pts_f = rays.origins[ray_f] + t_f[:, None] * rays.directions[ray_f]
     sig_f, h_f, out_f = _query(field, pts_f, rays.directions[ray_f], l_env, mode, deferred, outputs_hook)
     max_delta = (torch.maximum(rays.far, rays.near) - rays.near) / n
-    samples, order = merge_samples(coarse.t_mids, coarse.ray_indices, t_f, ray_f, R, max_delta, rays.near, rays.far)
+    sample_delta = None
+    if space.contraction:  # strata of unequal length: each sample spans at most its own stratum
+        sample_delta = torch.cat([coarse.deltas, edges[ray_f, k_f + 1] - edges[ray_f, k_f]])
+    samples, order = merge_samples(coarse.t_mids, coarse.ray_indices, t_f, ray_f, R, max_delta, rays.near, rays.far,
+                                   sample_delta)
     density = torch.cat([sig_c, sig_f])[order]
+    rows = edges[samples.ray_indices].contiguous()  # [S, n+1]: s = k / n at edge k
+
+    def _s_of(t: torch.Tensor) -> torch.Tensor:
+        k = torch.searchsorted(rows, t[:, None].contiguous(), right=True).squeeze(-1).clamp(1, n) - 1
+        e0, e1 = rows.gather(1, k[:, None])[:, 0], rows.gather(1, (k + 1)[:, None])[:, 0]
+        return (k.to(t.dtype) + ((t - e0) / (e1 - e0).clamp_min(1e-12)).clamp(0.0, 1.0)) / n
+
+    sample_s = (_s_of(samples.t_starts), _s_of(samples.t_ends)) if samples.t_starts.numel() else None
     points = torch.cat([pts_c, pts_f])[order]
     ri = samples.ray_indices
     weights, _, _ = render_weights(density, samples.deltas, ri, R)
@@ -297,7 +313,7 @@ def render_rays(
                          albedo=albedo, roughness=rough, metallic=metal, diffuse=diffuse, specular=specular,
                          light_residual=light_res, samples_per_ray=samples.counts(), weights=weights,
                          sample_points=points, sample_ray_indices=ri, sample_density=density, sample_features=feats,
-                         fine_counts=counts, deferred=deferred, sample_normals=sample_normals)
+                         fine_counts=counts, deferred=deferred, sample_normals=sample_normals, sample_s=sample_s)
 
 
 @torch.no_grad()
@@ -328,7 +344,7 @@ def render_image(
         ``semantic_logits``) or [H, W] (``depth``, ``opacity``, ``roughness``, ``metallic``, ``samples``).
     """
     h, w = int(cameras.height[index]), int(cameras.width[index])
-    rays = generate_rays(cameras, [index], aabb=aabb, near=near, far=far)
+    rays = generate_rays(cameras, [index], aabb=field.space if field.cfg.contraction else aabb, near=near, far=far)
     outs: dict[str, list[torch.Tensor]] = {}
     for i in range(0, len(rays), chunk):
         sub = rays[i:i + chunk]

@@ -31,6 +31,7 @@ import torch
 from ._checks import ConfigError, check_range, check_shape
 from .render import PackedSamples, ray_starts
 from .scene import Cameras, RayBundle
+from .space import SceneSpace, contracted_edges, uncontract
 
 __all__ = [
     "SamplerConfig",
@@ -74,6 +75,9 @@ class SamplerConfig:
     """Other training views averaged into W̄(x)."""
     perturb: bool = True
     """Jitter stratified samples (training); False for deterministic rendering."""
+    normalise: str = "quantile"
+    """How the sampler reads W: ``quantile`` — per image by rank (:func:`toolkit.edges.quantile_normalise`: τ
+    selects the top 1 − τ of each photo), ``none`` — as computed (min-max, eq. 4)."""
 
     def __post_init__(self):
         if self.n_coarse < 2:
@@ -83,6 +87,8 @@ class SamplerConfig:
         check_range(self.rho, 0.0, 1.0, "rho")
         check_range(self.tau, 0.0, 1.0, "tau")
         check_range(self.mix, 0.0, 1.0, "mix")
+        if self.normalise not in ("quantile", "none"):
+            raise ConfigError(f"sampler normalise={self.normalise!r}: choose 'quantile' or 'none'")
         if not 0 <= self.budget_min <= self.budget_max:
             raise ConfigError(f"need 0 <= budget_min ({self.budget_min}) <= budget_max ({self.budget_max})")
         if self.dars and not self.budget_min <= self.n_fine <= self.budget_max:
@@ -92,12 +98,13 @@ class SamplerConfig:
 
 # ====================================================================== occupancy grid
 class OccupancyGrid:
-    """A coarse density grid over the scene box used to skip empty space.
+    """A coarse density grid used to skip empty space (over the scene box, or over all of contracted space).
 
     Each cell keeps an exponential moving maximum of the field's density at random points in it
-    (Instant-NGP): ``d ← max(decay · d, σ(x))``. A cell is occupied when ``d · step > threshold`` (the opacity
-    of a fine reference step, Instant-NGP's render step: box diagonal / 1024) or, early on, when it is above
-    the mean. All cells start occupied and stay so during warm-up.
+    (Instant-NGP): ``d ← max(decay · d, σ(x))``. A cell is occupied when ``d · step · s(x) > threshold`` — the
+    opacity of a fine reference step (Instant-NGP's render step: box diagonal / 1024), ``s(x)`` the contraction's
+    stretch at the cell (:meth:`toolkit.space.SceneSpace.step_scale`: far cells are crossed by longer steps) — or,
+    early on, when it is above the mean. All cells start occupied and stay so during warm-up.
 
     Args:
         aabb: float [2, 3] scene box.
@@ -105,13 +112,17 @@ class OccupancyGrid:
         step: reference step (metres) that turns density into opacity.
         threshold: opacity below which a cell counts as empty.
         decay: EMA decay per update.
+        contraction: cover all of space through the scene contraction (:mod:`toolkit.space`); False: the box only.
+        far_radius: the contraction's far radius.
     """
 
     def __init__(self, aabb: torch.Tensor, resolution: int = 64, step: float = 0.01, threshold: float = 0.01,
-                 decay: float = 0.95):
+                 decay: float = 0.95, contraction: bool = False, far_radius: float = 64.0):
         if resolution < 2:
             raise ConfigError(f"occupancy resolution={resolution} must be >= 2")
         self.aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3)
+        self.contraction = bool(contraction)
+        self.far_radius = float(far_radius)
         self.resolution = int(resolution)
         self.step = float(step)
         self.threshold = float(threshold)
@@ -121,39 +132,54 @@ class OccupancyGrid:
         self.mask = torch.ones(n, dtype=torch.bool, device=self.aabb.device)
         self.updates = 0
 
+    @property
+    def space(self) -> SceneSpace:
+        return SceneSpace(self.aabb, self.contraction, self.far_radius)
+
     def to(self, device) -> "OccupancyGrid":
         self.aabb, self.density, self.mask = self.aabb.to(device), self.density.to(device), self.mask.to(device)
         return self
 
     def state_dict(self) -> dict:
         return {"aabb": self.aabb.cpu(), "resolution": self.resolution, "step": self.step, "threshold": self.threshold,
-                "decay": self.decay, "density": self.density.cpu(), "mask": self.mask.cpu(), "updates": self.updates}
+                "decay": self.decay, "density": self.density.cpu(), "mask": self.mask.cpu(), "updates": self.updates,
+                "contraction": self.contraction, "far_radius": self.far_radius}
 
     @classmethod
     def from_state_dict(cls, d: dict) -> "OccupancyGrid":
-        g = cls(d["aabb"], d["resolution"], d["step"], d["threshold"], d["decay"])
+        g = cls(d["aabb"], d["resolution"], d["step"], d["threshold"], d["decay"],
+                contraction=bool(d.get("contraction", False)), far_radius=float(d.get("far_radius", 64.0)))
         g.density, g.mask, g.updates = d["density"].clone(), d["mask"].clone(), int(d["updates"])
         return g
 
     def cell_index(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(flat cell index [N], inside-box mask [N]) of world points [N, 3]."""
-        lo, hi = self.aabb[0].to(points), self.aabb[1].to(points)
-        u = (points - lo) / (hi - lo)
-        inside = ((u >= 0) & (u <= 1)).all(-1)
+        """(flat cell index [N], modelled-space mask [N]) of world points [N, 3]."""
+        sp = self.space
+        g = sp.to_grid(points)
+        box = sp.grid_aabb.to(points)
+        u = (g - box[0]) / (box[1] - box[0])
+        inside = sp.inside(points) if self.contraction else ((u >= 0) & (u <= 1)).all(-1)
         ijk = (u * self.resolution).long().clamp(0, self.resolution - 1)
         r = self.resolution
         return ijk[:, 0] * r * r + ijk[:, 1] * r + ijk[:, 2], inside
 
     def occupied(self, points: torch.Tensor) -> torch.Tensor:
-        """bool [N]: the point is inside the box and its cell is occupied."""
+        """bool [N]: the point is inside the modelled space and its cell is occupied."""
         idx, inside = self.cell_index(points)
         return self.mask[idx] & inside
 
-    def cell_centres(self, idx: torch.Tensor) -> torch.Tensor:
+    def cell_centres(self, idx: torch.Tensor, jitter: torch.Tensor | None = None) -> torch.Tensor:
+        """World positions [N, 3] of cells ``idx`` (their centres, or offset by ``jitter`` [N, 3] in cell units,
+        in grid coordinates, so a jittered point stays in its cell also in contracted space)."""
         r = self.resolution
         ijk = torch.stack([idx // (r * r), (idx // r) % r, idx % r], -1).float()
-        lo, hi = self.aabb[0], self.aabb[1]
-        return lo + (ijk + 0.5) / r * (hi - lo)
+        if jitter is not None:
+            ijk = ijk + jitter.to(ijk)
+        box = self.space.grid_aabb.to(ijk.device)
+        g = box[0] + (ijk + 0.5) / r * (box[1] - box[0])
+        if not self.contraction:
+            return g
+        return uncontract(g, self.aabb.to(g))
 
     @torch.no_grad()
     def update(self, density_fn, generator: torch.Generator | None = None, all_cells: bool = False,
@@ -171,10 +197,11 @@ class OccupancyGrid:
             if occ.numel() > n // 4:
                 occ = occ[torch.randint(0, occ.numel(), (n // 4,), generator=generator, device="cpu").to(dev)]
             idx = torch.unique(torch.cat([rand, occ]))
-        cell = (self.aabb[1] - self.aabb[0]) / self.resolution
         jitter = torch.rand(idx.numel(), 3, generator=generator, device="cpu").to(dev) - 0.5
-        pts = self.cell_centres(idx) + jitter * cell
+        pts = self.cell_centres(idx, jitter)
         sig = torch.cat([density_fn(pts[i:i + chunk]).float() for i in range(0, pts.shape[0], chunk)])
+        if self.contraction:  # a far cell is crossed by proportionally longer steps: compare opacities, not σ
+            sig = sig * self.space.step_scale(pts).to(sig)
         cur = self.density[idx]
         cur = torch.where(cur >= 1e6, torch.zeros_like(cur), cur)  # first measurement replaces "unknown"
         self.density[idx] = torch.maximum(cur * self.decay, sig)
@@ -192,10 +219,14 @@ class OccupancyGrid:
 
 
 # ====================================================================== stratified + hierarchical
-def stratified_edges(rays: RayBundle, n: int, perturb: bool, generator: torch.Generator | None = None) -> torch.Tensor:
+def stratified_edges(rays: RayBundle, n: int, perturb: bool, generator: torch.Generator | None = None,
+                     space: SceneSpace | None = None) -> torch.Tensor:
     """float [R, n + 1] stratum edges in [near, far] per ray (shifted by one random offset per ray when
     ``perturb``; the first/last strata are clipped to [near, far]). Rays that miss (far <= near) get
-    zero-length strata."""
+    zero-length strata. With a contracted ``space`` the strata are equal in contracted arc length
+    (:func:`toolkit.space.contracted_edges`), else equal in metres."""
+    if space is not None and space.contraction:
+        return contracted_edges(rays.origins, rays.directions, rays.near, rays.far, space, n, perturb, generator)
     R = len(rays)
     near = rays.near
     far = torch.maximum(rays.far, rays.near)
@@ -236,7 +267,7 @@ def proposal_weights(coarse: PackedSamples, stratum: torch.Tensor, densities: to
 
 
 def sample_fine(edges: torch.Tensor, pdf: torch.Tensor, counts: torch.Tensor, perturb: bool,
-                generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                generator: torch.Generator | None = None, return_strata: bool = False):
     """Inverse-CDF sampling of a per-ray piecewise-constant density over the strata.
 
     Args:
@@ -245,14 +276,17 @@ def sample_fine(edges: torch.Tensor, pdf: torch.Tensor, counts: torch.Tensor, pe
         counts: int64 [R] samples to draw per ray (the packed budget).
         perturb: stratified random ``u`` within each of the ``counts`` equal CDF slices (else slice centres).
 
+        return_strata: also return the stratum index [S_f] of each sample.
+
     Returns:
-        (t [S_f], ray_indices [S_f]) sorted by ray, then t.
+        (t [S_f], ray_indices [S_f]) sorted by ray, then t (and the strata with ``return_strata``).
     """
     R, n = pdf.shape
     total = int(counts.sum())
     if total == 0:
         z = edges.new_zeros(0)
-        return z, torch.zeros(0, dtype=torch.long, device=edges.device)
+        e = torch.zeros(0, dtype=torch.long, device=edges.device)
+        return (z, e, e) if return_strata else (z, e)
     valid = (edges[:, 1:] > edges[:, :-1]).to(pdf.dtype)
     p = pdf * valid
     s = p.sum(-1, keepdim=True)
@@ -271,11 +305,14 @@ def sample_fine(edges: torch.Tensor, pdf: torch.Tensor, counts: torch.Tensor, pe
     e0 = e.gather(1, k[:, None]).squeeze(-1)
     e1 = e.gather(1, (k + 1)[:, None]).squeeze(-1)
     frac = ((u - c0) / (c1 - c0).clamp_min(1e-12)).clamp(0.0, 1.0)
+    if return_strata:
+        return e0 + frac * (e1 - e0), ray_idx, k
     return e0 + frac * (e1 - e0), ray_idx
 
 
 def merge_samples(t_a: torch.Tensor, ray_a: torch.Tensor, t_b: torch.Tensor, ray_b: torch.Tensor, n_rays: int,
-                  max_delta: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> tuple[PackedSamples, torch.Tensor]:
+                  max_delta: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
+                  sample_max_delta: torch.Tensor | None = None) -> tuple[PackedSamples, torch.Tensor]:
     """Union of two sets of sample positions, sorted by (ray, t), with Voronoi intervals.
 
     Each sample's interval reaches half-way to its neighbours on the same ray, at most ``max_delta[ray] / 2``
@@ -287,6 +324,8 @@ def merge_samples(t_a: torch.Tensor, ray_a: torch.Tensor, t_b: torch.Tensor, ray
         n_rays: R.
         max_delta: float [R] longest interval (the coarse step) per ray.
         near, far: float [R] ray bounds.
+        sample_max_delta: float [S_a + S_b] longest interval per sample (its stratum's width, for strata of
+            unequal length as in contracted space), used instead of ``max_delta`` when given.
 
     Returns:
         (samples, order) where ``order`` [S_a + S_b] maps packed positions to indices into cat([a, b]).
@@ -300,7 +339,7 @@ def merge_samples(t_a: torch.Tensor, ray_a: torch.Tensor, t_b: torch.Tensor, ray
     key = r.double() + ((t.double() - near.double()[r]) / span[r]).clamp(0.0, 1.0 - 1e-9)
     order = torch.argsort(key, stable=True)  # ties keep cat([a, b]) order (export/infer.py's numpy mirror does too)
     t, r = t[order], r[order]
-    half = 0.5 * max_delta[r]
+    half = 0.5 * (max_delta[r] if sample_max_delta is None else sample_max_delta[order])
     same_prev = torch.cat([torch.zeros(1, dtype=torch.bool, device=t.device), r[1:] == r[:-1]])
     same_next = torch.cat([r[:-1] == r[1:], torch.zeros(1, dtype=torch.bool, device=t.device)])
     gap_prev = torch.cat([t.new_zeros(1), t[1:] - t[:-1]])

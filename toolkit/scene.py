@@ -437,7 +437,7 @@ def generate_rays(
     cameras: Cameras,
     camera_indices: torch.Tensor | Sequence[int] | None = None,
     pixels: torch.Tensor | None = None,
-    aabb: torch.Tensor | None = None,
+    aabb=None,
     near: float | None = None,
     far: float | None = None,
     near_min: float = 0.05,
@@ -448,8 +448,9 @@ def generate_rays(
     ``camera_indices`` (a list of cameras; every pixel of each, row-major) or nothing (every pixel of every
     camera). Rays are allocated on the cameras' device.
 
-    Ray bounds: the intersection with ``aabb`` (entry clamped to ``near_min``), further limited to
-    ``[near, far]`` when those are given (the file's); without a box ``[near, far]`` or ``[near_min, 1e3]``.
+    Ray bounds: the intersection with ``aabb`` (entry clamped to ``near_min``) — a float [2, 3] box, or a
+    :class:`toolkit.space.SceneSpace` (contracted: out to its far radius) —, further limited to ``[near, far]``
+    when those are given (the file's); without a box ``[near, far]`` or ``[near_min, 1e3]``.
 
     Example:
         >>> rays = generate_rays(scene.cameras, [0], aabb=scene.aabb)  # all pixels of camera 0
@@ -481,7 +482,11 @@ def generate_rays(
     directions = d_world / norm
     z_scale = 1.0 / norm.squeeze(-1)
     origins = c2w[:, :3, 3].expand_as(directions).contiguous()
-    if near is not None and far is not None:
+    if aabb is not None and hasattr(aabb, "ray_bounds"):  # a SceneSpace
+        n, f = aabb.ray_bounds(origins, directions, near_min)
+        if near is not None and far is not None:
+            n, f = torch.maximum(n, torch.full_like(n, float(near))), torch.minimum(f, torch.full_like(f, float(far)))
+    elif near is not None and far is not None:
         n = torch.full_like(pu, float(near))
         f = torch.full_like(pu, float(far))
         if aabb is not None:  # the file's bounds, clipped to the scene box (nothing is modelled outside it)
@@ -605,7 +610,7 @@ def load_scene(
         box = torch.tensor(aabb, dtype=torch.float32)
         if box.shape != (2, 3) or not bool((box[1] > box[0]).all()):
             raise SceneError(f"aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with max > min, got {aabb}")
-        scene = replace(scene, aabb=box)
+        scene = replace(scene, aabb=box, meta={**scene.meta, "aabb_source": "file"})
     return scene
 
 
@@ -790,6 +795,7 @@ def _load_transforms(file: Path, split: str, test_every: int, bg, downscale: int
     envmap = base / meta["envmap"] if meta.get("envmap") else None
     cams = _make_cameras(c2w, fxs, fys, cxs, cys, ws, hs, downscale)
     extra_meta = {k: v for k, v in meta.items() if k != "frames"}
+    extra_meta["aabb_source"] = "file" if "aabb" in meta else "cameras"
     return Scene(source=file, split=split, cameras=cams, frames=tuple(frames), aabb=torch.tensor(box, dtype=torch.float32),
                  near=_opt_float(meta.get("near")), far=_opt_float(meta.get("far")), sh=sh, envmap_path=envmap,
                  background=bg, downscale=downscale, srgb=True,

@@ -36,7 +36,7 @@ from ._checks import ConfigError, DarsError, check_choice
 from .encoding import HashGridConfig
 from .field import DarsField, FieldConfig
 from .io import atomic_write, linear_to_srgb, srgb_to_linear, write_json
-from .losses import (LossWeights, light_residual_loss, material_loss, normal_consistency_loss, orientation_loss,
+from .losses import (LossWeights, compactness_loss, light_residual_loss, material_loss, normal_consistency_loss, orientation_loss,
                      psnr_loss, rgb_l1, semantic_loss, ssim_loss)
 from .pipeline import Background, DarsContext, render_rays
 from .sampling import OccupancyGrid, SamplerConfig, build_ray_sampler, neighbour_views, select_rays
@@ -105,13 +105,23 @@ class TrainConfig:
     """Per-image gains (stage 2): ``auto`` = on when ``priors/colour/colour.json`` exists."""
     background: Literal["auto", "constant", "learned", "env"] = "auto"
     """``auto``: the scene's background colour for RGBA images, else a learned lat-long environment."""
-    scene_type: Literal["auto", "room", "object"] = "auto"
-    """``room``: photos taken inside an enclosed room — the density starts with an opaque layer on the box faces
-    (:attr:`FieldConfig.shell`) away from the cameras; ``object``: a transparent start everywhere. ``auto``: room
-    when most training cameras are inside the scene box and the photos are not RGBA (:func:`resolve_config`)."""
+    scene_type: Literal["auto", "unbounded", "room", "object"] = "auto"
+    """``unbounded`` (``room`` is an alias): space is contracted beyond the scene box (:mod:`toolkit.space`) and
+    a learned environment lies beyond the far radius — rooms, galleries, outdoor and real object captures with their
+    surroundings; ``object``: an isolated object on a known background colour, nothing modelled outside the box.
+    ``auto``: ``object`` when the photos have real transparency (RGBA with alpha < 1), else ``unbounded``."""
+    scene_box: tuple | None = None
+    """The scene box ``((xmin, ymin, zmin), (xmax, ymax, zmax))`` the run was trained with (filled by
+    :func:`resolve_config`: the file's ``aabb`` or one fitted to sparse points, :mod:`toolkit.bounds`)."""
+    scene_box_source: str = ""
+    """Where :attr:`scene_box` came from."""
     seed: int = 0
     checkpoint_every: int = 500
     log_every: int = 25
+    calibration_steps: int = 96
+    """The first steps, whose schedule does not depend on the run's length (stage a, constant learning rate). A
+    ``minutes`` budget becomes a step count after them, timed over their last 24 steps (after the occupancy
+    warm-up of ``occupancy_warmup`` steps, so the timing is that of the rest of the run)."""
     snapshot_minutes: tuple[float, ...] = ()
     """Save the field at these elapsed training minutes (benchmarks evaluate them)."""
     device: str = "auto"
@@ -120,7 +130,7 @@ class TrainConfig:
         check_choice(self.shading, ("pbr", "radiance"), "shading")
         check_choice(self.colour_correction, ("auto", "on", "off"), "colour_correction")
         check_choice(self.background, ("auto", "constant", "learned", "env"), "background")
-        check_choice(self.scene_type, ("auto", "room", "object"), "scene_type")
+        check_choice(self.scene_type, ("auto", "unbounded", "room", "object"), "scene_type")
         if self.batch_rays < 16:
             raise ConfigError(f"batch_rays={self.batch_rays} must be >= 16")
         if self.steps < 0 or self.minutes < 0:
@@ -148,8 +158,14 @@ class TrainConfig:
         fd["grid"] = HashGridConfig(**fd["grid"])
         if "shell_faces" in fd:
             fd["shell_faces"] = tuple(bool(f) for f in fd["shell_faces"])
-        return cls(field=FieldConfig(**fd), sampler=SamplerConfig(**d.pop("sampler")),
-                   render_sampler=SamplerConfig(**d.pop("render_sampler")), losses=LossWeights(**d.pop("losses")),
+        fd.setdefault("contraction", False)  # runs made before unbounded scenes were bounded
+        if d.get("scene_box") is not None:
+            d["scene_box"] = tuple(tuple(float(v) for v in row) for row in d["scene_box"])
+        samplers = {k: dict(d.pop(k)) for k in ("sampler", "render_sampler")}
+        for v in samplers.values():
+            v.setdefault("normalise", "none")  # runs made before W was rank-normalised
+        return cls(field=FieldConfig(**fd), sampler=SamplerConfig(**samplers["sampler"]),
+                   render_sampler=SamplerConfig(**samplers["render_sampler"]), losses=LossWeights(**d.pop("losses")),
                    snapshot_minutes=tuple(d.pop("snapshot_minutes", ())), **d)
 
 
@@ -209,54 +225,78 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
     return replace(cfg, **overrides)
 
 
-ROOM_SHELL = 0.03
-"""Thickness of the room prior's layer: 3 % of the box diagonal (25 cm on the gallery sample, about 1.3 coarse
-steps of the ``fast`` preset, so every ray that reaches a face puts a sample in the layer)."""
-
-
 SHELL_FADE = 0.1
-"""Fraction of the run over which the room prior's layer fades in, after stage (a)."""
+"""Fraction of the run over which the (legacy, bounded-only) room prior's layer fades in, after stage (a)."""
 
 
-def _resolve_scene_type(cfg: TrainConfig, scene: Scene) -> TrainConfig:
-    """``scene_type`` → the field's room prior: on for a room (most cameras inside the box, opaque photos), on the
-    faces no camera comes within 1.5 layer thicknesses of (a camera inside the layer would see nothing)."""
-    kind = cfg.scene_type
-    lo, hi = scene.aabb[0], scene.aabb[1]
-    cams = scene.cameras.origins.to(lo)
-    if kind == "auto":
-        inside = ((cams >= lo) & (cams <= hi)).all(-1).float().mean()
-        kind = "room" if float(inside) > 0.5 and not _photos_have_alpha(scene) else "object"
-    if kind == "object":
-        return replace(cfg, scene_type="object", field=replace(cfg.field, shell=0.0))
-    eps = ROOM_SHELL * float((hi - lo).norm())
-    clearance = torch.cat([cams - lo, hi - cams], -1).amin(0)  # [6] closest camera to each face
-    faces = tuple(bool(c > 1.5 * eps) for c in clearance)
-    return replace(cfg, scene_type="room", field=replace(cfg.field, shell=ROOM_SHELL if any(faces) else 0.0,
-                                                         shell_faces=faces))
+def photos_have_transparency(scene: Scene, n: int = 3) -> bool:
+    """Whether the photos are RGBA with real transparency (alpha < 1 somewhere in the first, middle or last
+    photo): an object rendered on a known background. An alpha channel that is 255 everywhere does not count."""
+    f0 = scene.frames[0]
+    if f0.image_path is None or f0.image_path.suffix.lower() != ".png":
+        return False
+    from PIL import Image
+
+    with Image.open(f0.image_path) as im:
+        if im.mode not in ("RGBA", "LA"):
+            return False
+    idx = sorted({0, len(scene) // 2, len(scene) - 1})[:n]
+    return any(bool((scene.load_image(i, with_alpha=True)[3] < 0.999).any()) for i in idx)
 
 
-def resolve_config(cfg: TrainConfig, scene: Scene) -> TrainConfig:
-    """Fill data-dependent settings:
+def resolve_scene_box(cfg: TrainConfig, scene: Scene, log=None) -> tuple[Scene, TrainConfig]:
+    """The scene box of a run: ``cfg.scene_box`` when set (a resumed or loaded run), the file's ``aabb``, or one
+    fitted to sparse points (the scene's own, else triangulated from the photos; :mod:`toolkit.bounds`)."""
+    from dataclasses import replace as _r
 
-    * ``scene_type`` (``auto`` → ``room`` or ``object``) and with it the field's room prior (:data:`ROOM_SHELL`);
+    if cfg.scene_box is not None:
+        return _r(scene, aabb=torch.tensor(cfg.scene_box, dtype=torch.float32)), cfg
+    if scene.meta.get("aabb_source") == "file":
+        box, src = scene.aabb.numpy().astype(np.float64), "file"
+    else:
+        from .bounds import scene_box_from_points, triangulate_sparse_points
+
+        pts = triangulate_sparse_points(scene, log=log)
+        c2w = scene.cameras.c2w.double().numpy()
+        sb = scene_box_from_points(pts.points, c2w, scene.cameras.fx.double().numpy(),
+                                   scene.cameras.width.double().numpy())
+        box, src = sb.aabb, sb.source
+    if log is not None:
+        lo, hi = box
+        log(f"[dars] scene box ({src}): [{lo[0]:.2f}, {lo[1]:.2f}, {lo[2]:.2f}] .. [{hi[0]:.2f}, {hi[1]:.2f}, {hi[2]:.2f}] m")
+    cfg = _r(cfg, scene_box=tuple(tuple(float(v) for v in row) for row in box), scene_box_source=src)
+    return _r(scene, aabb=torch.tensor(box, dtype=torch.float32)), cfg
+
+
+def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfig, Scene]:
+    """Fill data-dependent settings; returns the config and the scene with its resolved box.
+
+    * ``scene_type`` (``auto`` → ``unbounded`` or ``object``) and with it the field's contraction;
+    * the scene box (:func:`resolve_scene_box`);
     * with ``auto_resolution`` the hash grid's finest level resolves a quarter of the pixel footprint at the median
-      camera distance — ``next_pow2(4 · box extent / footprint)``, clamped to [256, 2048] (tiny Lego 100 px: 512;
-      Lego 400 px: 2048; the gallery sample: 1024).
+      camera distance — ``next_pow2(4 · box extent / footprint)`` (twice that with contraction: the box spans half
+      of each grid axis), clamped to [256, 2048].
     """
-    if cfg.scene_type == "auto" or (cfg.scene_type == "room" and cfg.field.shell == 0.0):
-        cfg = _resolve_scene_type(cfg, scene)
+    kind = cfg.scene_type
+    if kind == "auto":
+        kind = "object" if photos_have_transparency(scene) else "unbounded"
+    if kind == "room":
+        kind = "unbounded"
+    if cfg.scene_type != kind or cfg.field.contraction != (kind == "unbounded"):
+        cfg = replace(cfg, scene_type=kind, field=replace(cfg.field, contraction=kind == "unbounded", shell=0.0))
+    scene, cfg = resolve_scene_box(cfg, scene, log)
     if not cfg.auto_resolution or cfg.field.encoding != "grid":
-        return cfg
+        return cfg, scene
     cams = scene.cameras
     centre = scene.aabb.mean(0)
     dist = float((cams.origins - centre).norm(dim=-1).median())
     footprint = dist / float(cams.fx.median())
     extent = float((scene.aabb[1] - scene.aabb[0]).max())
-    res = 2 ** math.ceil(math.log2(max(4.0 * extent / footprint, 1.0)))
+    k = 8.0 if cfg.field.contraction else 4.0
+    res = 2 ** math.ceil(math.log2(max(k * extent / footprint, 1.0)))
     res = int(min(2048, max(256, res)))
     grid = replace(cfg.field.grid, max_resolution=res, base_resolution=min(cfg.field.grid.base_resolution, res))
-    return replace(cfg, field=replace(cfg.field, grid=grid), auto_resolution=False)
+    return replace(cfg, field=replace(cfg.field, grid=grid), auto_resolution=False), scene
 
 
 # ============================================================================ data
@@ -389,7 +429,12 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
     elif cfg.colour_correction == "on":
         priors["colour"] = "identity (learned)"
     log(f"[dars] priors: " + ", ".join(f"{k}={v}" for k, v in priors.items()))
-    return TrainData(scene=scene, images=images, labels=labels, metal=metal, weights=wm.clamp(0, 1), distortion=dist,
+    wm = wm.clamp(0, 1)
+    if cfg.sampler.normalise == "quantile":
+        from .edges import quantile_normalise
+
+        wm = quantile_normalise(wm)
+    return TrainData(scene=scene, images=images, labels=labels, metal=metal, weights=wm, distortion=dist,
                      albedo_gt=albedo_gt, l_env_init=l_env, l_env_source=l_src, colour_init=colour_init,
                      priors_used=priors)
 
@@ -435,21 +480,10 @@ def _border_colour(images: torch.Tensor, srgb: bool) -> tuple[float, float, floa
     return tuple(float(c) for c in lin.clamp(0.0, 1.0))
 
 
-def _photos_have_alpha(scene: Scene) -> bool:
-    """Whether the photos are RGBA (objects on a known background colour, as Blender renders): the first frame."""
-    f0 = scene.frames[0]
-    if f0.image_path is None or f0.image_path.suffix.lower() != ".png":
-        return False
-    from PIL import Image
-
-    with Image.open(f0.image_path) as im:
-        return im.mode in ("RGBA", "LA")
-
-
 def _background_for(scene: Scene, cfg: TrainConfig, images: torch.Tensor | None = None) -> Background:
     mode = cfg.background
     if mode == "auto":
-        mode = "constant" if _photos_have_alpha(scene) else "env"
+        mode = "constant" if cfg.scene_type == "object" and photos_have_transparency(scene) else "env"
     if mode == "constant" or images is None:
         colour = tuple(float(c) for c in srgb_to_linear(np.asarray(scene.background, np.float64)))
     else:
@@ -488,7 +522,8 @@ def init_state(cfg: TrainConfig, data: TrainData) -> TrainState:
         g["initial_lr"] = g["lr"]
     V, H, W = data.weights.shape
     extent = float((scene.aabb[1] - scene.aabb[0]).norm())
-    occ = OccupancyGrid(scene.aabb, cfg.occupancy_resolution, step=extent / 1024.0).to(dev)
+    occ = OccupancyGrid(scene.aabb, cfg.occupancy_resolution, step=extent / 1024.0, contraction=cfg.field.contraction,
+                        far_radius=cfg.field.far_radius).to(dev)
     ray_sampler = build_ray_sampler(data.weights if cfg.sampler.dars else None, (V, H, W), cfg.sampler.rho)
     nb = neighbour_views(scene.cameras, cfg.sampler.n_neighbours)
     dars = DarsContext(scene.cameras.to(dev), data.weights.to(dev), nb.to(dev))
@@ -498,17 +533,40 @@ def init_state(cfg: TrainConfig, data: TrainData) -> TrainState:
 
 
 def progress(state: TrainState) -> float:
-    """Fraction of the run done, in [0, 1] (by steps, or by minutes for a time budget)."""
+    """Fraction of the run done, in [0, 1], by steps (a ``minutes`` budget is turned into steps by
+    :func:`calibrate_steps`; until then the run is in its first, length-independent steps: 0)."""
     cfg = state.cfg
-    if cfg.steps:
-        return min(1.0, state.step / cfg.steps)
-    if cfg.minutes:
-        return min(1.0, state.elapsed / (60.0 * cfg.minutes))
-    return 0.0
+    return min(1.0, state.step / cfg.steps) if cfg.steps else 0.0
+
+
+def lr_progress(state: TrainState) -> float:
+    """Fraction of the learning-rate decay done: none during the first :attr:`TrainConfig.calibration_steps`
+    steps (their schedule must not depend on the run's length), then exponential decay to the end."""
+    cfg = state.cfg
+    k = min(cfg.calibration_steps, max(0, cfg.steps - 1)) if cfg.steps else cfg.calibration_steps
+    if not cfg.steps or state.step <= k:
+        return 0.0
+    return min(1.0, (state.step - k) / max(1, cfg.steps - k))
+
+
+def calibrate_steps(state: TrainState, budget_minutes: float, t_window: float, n_window: int, log=print) -> dict:
+    """Turn a wall-clock budget into the run's step count, once, after :attr:`TrainConfig.calibration_steps`:
+    the seconds per step of the last ``n_window`` steps (after the occupancy warm-up, when a step costs what it
+    will cost for the rest of the run) divide what is left of the budget. The run then follows a step schedule, so
+    ``--steps N`` with the logged N reproduces it exactly on any machine (the first ``calibration_steps`` steps
+    do not depend on the run's length). Returns the record kept in ``config.json``."""
+    per_step = t_window / max(1, n_window)
+    left = 60.0 * budget_minutes - state.elapsed
+    steps = max(state.step, state.step + int(left / per_step))
+    rec = {"minutes": budget_minutes, "seconds_per_step": round(per_step, 4), "at_step": state.step,
+           "elapsed": round(state.elapsed, 2), "steps": steps}
+    log(f"[dars] timing calibration: {per_step:.3f} s/step on this machine -> {steps} steps for {budget_minutes:g} min "
+        f"(reproduce exactly with --steps {steps})")
+    return rec
 
 
 def _set_lr(state: TrainState) -> None:
-    f = state.cfg.lr_final_factor ** progress(state)
+    f = state.cfg.lr_final_factor ** lr_progress(state)
     for opt in (state.optimizer, state.light_optimizer):
         for g in opt.param_groups:
             g["lr"] = g["initial_lr"] * f
@@ -553,8 +611,9 @@ def sample_batch(state: TrainState, data: TrainData) -> Batch:
     dev = state.device
     cams = state.dars.cameras
     scene = data.scene
+    bounds = state.field.space if state.cfg.field.contraction else scene.aabb.to(dev)
     rays = generate_rays(cams, views.to(dev), pixels=torch.stack([cols, rows], -1).to(dev),
-                         aabb=scene.aabb.to(dev), near=scene.near, far=scene.far)
+                         aabb=bounds, near=scene.near, far=scene.far)
     target = data.images[views, :, rows, cols].to(dev)
     labels = data.labels[views, rows, cols].long().to(dev) if data.labels is not None else None
     metal = data.metal[views, rows, cols].to(dev) if data.metal is not None else None
@@ -639,10 +698,14 @@ def train_step(state: TrainState, data: TrainData) -> dict:
     if out.light_residual is not None and lw.light_reg > 0 and out.weights.numel():
         lw_w = out.opacity if out.deferred else out.weights
         terms["light_reg"] = light_residual_loss(out.light_residual, state.l_env, lw_w)
+    if lw.compactness > 0 and out.sample_s is not None:
+        terms["compactness"] = compactness_loss(out.weights, out.sample_s[0], out.sample_s[1],
+                                                out.sample_ray_indices, len(batch.rays))
     if state.colour is not None and lw.colour_reg > 0:
         terms["colour_reg"] = state.colour.regulariser()
     weight = {"rgb": lw.rgb, "ssim": lw.ssim, "mat": lw.mat, "psnr_loss": lw.psnr, "eikonal": lw.eikonal,
-              "orientation": lw.orientation, "semantic": lw.semantic, "light_reg": lw.light_reg, "colour_reg": lw.colour_reg}
+              "orientation": lw.orientation, "semantic": lw.semantic, "light_reg": lw.light_reg, "colour_reg": lw.colour_reg,
+              "compactness": lw.compactness}
     loss = sum(weight[k] * v for k, v in terms.items())
     if not torch.isfinite(loss):
         bad = [k for k, v in terms.items() if not torch.isfinite(v)]
@@ -671,6 +734,10 @@ def train_step(state: TrainState, data: TrainData) -> dict:
         res.update(loss=float(loss), psnr=float(-10 * torch.log10(mse.clamp_min(1e-10))),
                    distortion=float(data.distortion.mean()), samples_per_ray=float(out.samples_per_ray.float().mean()),
                    fine_per_ray=float(out.fine_counts.float().mean()), stage="b" if stage_b else "a")
+        fc = out.fine_counts[out.fine_counts > 0]
+        if fc.numel():
+            res.update(fine_min=int(fc.min()), fine_max=int(fc.max()),
+                       fine_changed=float((fc != cfg.sampler.n_fine).float().mean()))
     return res
 
 
@@ -797,29 +864,40 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
             raise DarsError(f"--resume: no checkpoint at {ck_path}")
         saved = json.loads(cfg_path.read_text())
         base = TrainConfig.from_dict(saved["config"])
-        cfg = replace(base, steps=max(cfg.steps, base.steps) if cfg.steps else base.steps,
-                      minutes=max(cfg.minutes, base.minutes) if cfg.minutes else base.minutes)
+        steps = base.steps
+        if cfg.steps:
+            steps = max(cfg.steps, base.steps)
+        elif cfg.minutes and base.minutes and cfg.minutes > base.minutes:  # a longer budget: same rate
+            steps = int(round(base.steps * cfg.minutes / base.minutes))
+        cfg = replace(base, steps=steps, minutes=max(cfg.minutes, base.minutes))
+        saved_calibration = saved.get("calibration")
         scene_path = saved["scene"]
         split = saved.get("split", split)
         priors_root = saved.get("priors_root")
-    elif ck_path.exists():
+    else:
+        saved_calibration = None
+    if not resume and ck_path.exists():
         raise DarsError(f"{out} already holds a run (checkpoint.pt); pass --resume to continue it or choose another --out")
     if not cfg.steps and not cfg.minutes:
         raise ConfigError("give a training length: --steps N or --minutes M")
     if cfg.device != "auto" and cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"device={cfg.device} requested but CUDA is not available")
     scene = load_scene(scene_path, split)
-    cfg = resolve_config(cfg, scene)
+    cfg, scene = resolve_config(cfg, scene, log)
     out.mkdir(parents=True, exist_ok=True)
     data = prepare_data(scene, cfg, log, priors_root)
     state = init_state(cfg, data)
     if resume:
         load_checkpoint(ck_path, state)
         log(f"[dars] resumed {out} at step {state.step} ({state.elapsed / 60:.1f} min)")
-    write_json(cfg_path, {"config": cfg.to_dict(), "scene": str(Path(scene_path).resolve()), "split": split,
-                          "priors_root": str(Path(priors_root).resolve()) if priors_root else None,
-                          "priors": data.priors_used, "l_env_init": data.l_env_init.tolist(),
-                          "l_env_source": data.l_env_source, "torch": torch.__version__})
+    def write_run_config(calibration):
+        write_json(cfg_path, {"config": cfg.to_dict(), "scene": str(Path(scene_path).resolve()), "split": split,
+                              "priors_root": str(Path(priors_root).resolve()) if priors_root else None,
+                              "priors": data.priors_used, "l_env_init": data.l_env_init.tolist(),
+                              "l_env_source": data.l_env_source, "torch": torch.__version__,
+                              "calibration": calibration})
+
+    write_run_config(saved_calibration)
     log_path = out / "log.jsonl"
     if not resume and log_path.exists():
         log_path.unlink()
@@ -827,14 +905,13 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
     bar = tqdm(total=total, initial=state.step, disable=not progress_bar, file=sys.stderr, dynamic_ncols=True,
                unit="step", desc="train")
     t_last_ck = time.monotonic()
+    t_window = None
     last = {}
     try:
         while True:
             if cfg.steps and state.step >= cfg.steps:
                 break
             if stop_at is not None and state.step >= stop_at:
-                break
-            if not cfg.steps and state.elapsed >= 60.0 * cfg.minutes:
                 break
             t0 = time.monotonic()
             _set_lr(state)
@@ -852,6 +929,18 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
             state.step += 1
             state.elapsed += time.monotonic() - t0
             last.update(res)
+            if not cfg.steps:  # a minutes budget: fix the step count once the first steps are timed
+                n_win = max(1, min(24, cfg.calibration_steps // 4))
+                if state.step == cfg.calibration_steps - n_win:
+                    t_window = state.elapsed
+                if state.step >= cfg.calibration_steps or state.elapsed >= 60.0 * cfg.minutes:
+                    t0_win = t_window if state.step >= cfg.calibration_steps and t_window is not None else 0.0
+                    n_done = n_win if t0_win else state.step
+                    rec = calibrate_steps(state, cfg.minutes, state.elapsed - t0_win, n_done, log)
+                    cfg = replace(cfg, steps=rec["steps"])
+                    state.cfg = cfg
+                    bar.total = cfg.steps
+                    write_run_config(rec)
             if state.step % cfg.log_every == 0 or state.step == 1:
                 rec = {"kind": "train", "step": state.step, "elapsed": round(state.elapsed, 2),
                        "lr": state.optimizer.param_groups[0]["lr"], "occupancy": state.occupancy.occupancy_fraction(),
@@ -868,8 +957,6 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
             bar.update(1)
             if "psnr" in last:
                 eta = ""
-                if not cfg.steps and cfg.minutes:
-                    eta = f"{max(0.0, cfg.minutes * 60 - state.elapsed) / 60:.1f}min left"
                 bar.set_postfix_str(f"loss {last.get('loss', float('nan')):.4f} psnr {last['psnr']:.2f} "
                                     f"{last.get('stage', '')} {eta}".strip())
     except TrainingDiverged as e:
@@ -939,6 +1026,8 @@ def load_run(run_dir: str | Path, checkpoint: str | Path | None = None, device: 
     cfg = TrainConfig.from_dict(meta["config"])
     ck = torch.load(ck_path, map_location=device, weights_only=False)
     scene = load_scene(meta["scene"], meta.get("split", "train"))
+    if cfg.scene_box is not None:
+        scene = replace(scene, aabb=torch.tensor(cfg.scene_box, dtype=torch.float32))
     fld = DarsField(cfg.field, scene.aabb).to(device)
     fld.load_state_dict(ck["field"])
     fld.eval()
