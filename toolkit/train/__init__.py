@@ -1,0 +1,44 @@
+"""Stage 11 — two-stage training of the decoupled field (paper eqs. 21–23), presets, checkpoints.
+
+Training state is explicit (:class:`TrainState`; ``state = init_state(cfg, data)``, ``train_step(state, ...)``)
+so resume is exact: a checkpoint holds the field, optimiser, l_env, occupancy grid, RNG state and the step, and
+a resumed ``--steps`` run reproduces an uninterrupted one bit for bit on CPU.
+
+Stages:
+  (a) pretrain (first ``pretrain_fraction`` of the run): the light estimate l_env is frozen; the field is
+      optimised on L_rgb + λ L_ssim + λ L_mat (eq. 21);
+  (b) alternate, every ``light_period`` steps: ``light_steps`` steps that fix the field and optimise l_env on
+      the L1 reprojection error (eq. 22), then field steps with l_env fixed on eq. 23 (+ L_psnr, L_eikonal).
+  ``fixed_light`` skips the l_env steps (the "fixed lighting" ablation).
+
+A run directory holds ``config.json``, ``checkpoint.pt``, ``log.jsonl``, ``loss_curves.png`` and
+``snapshots/`` (field states at the ``snapshot_minutes`` milestones).
+
+Modules: :mod:`~toolkit.train.config` (:class:`TrainConfig`, presets, :func:`resolve_config`),
+:mod:`~toolkit.train.data` (:func:`prepare_data`, through :func:`toolkit.priors.read_priors`),
+:mod:`~toolkit.train.step` (state, batches, the field and light steps), :mod:`~toolkit.train.loop` (:func:`train`,
+checkpoints). Loading a finished run is :mod:`toolkit.run` (:func:`~toolkit.run.load_run`); its names are
+re-exported here for old imports, loaded on first use (``toolkit.run`` imports this package, not the other way).
+"""
+
+from __future__ import annotations
+
+from .config import PRESETS, ROOM_SHELL, SHELL_FADE, TrainConfig, make_config, resolve_config
+from .data import TrainData, grey_ambient_sh, prepare_data
+from .loop import load_checkpoint, save_checkpoint, train
+from .step import MAX_BAD_STEPS, TrainingDiverged, TrainState, init_state, light_step, progress, sample_batch, train_step
+
+__all__ = ["TrainConfig", "make_config", "PRESETS", "TrainData", "TrainState", "prepare_data", "init_state",
+           "train_step", "light_step", "train", "save_checkpoint", "load_checkpoint", "Run", "load_run",
+           "TrainingDiverged", "grey_ambient_sh", "resolve_config", "field_callables", "load_field_callables",
+           "ROOM_SHELL", "SHELL_FADE", "MAX_BAD_STEPS", "progress", "sample_batch"]
+
+_FROM_RUN = ("Run", "load_run", "field_callables", "load_field_callables")
+
+
+def __getattr__(name: str):
+    if name in _FROM_RUN:  # lazily: importing toolkit.run here would be an import cycle
+        from .. import run
+
+        return getattr(run, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
