@@ -8,7 +8,7 @@ Measures, for each thread count (``--threads 1,2``):
   torch eager with the plain-torch encoding (the code the graph is traced from), and ONNX Runtime fp32 / fp16 /
   int8 (``field.onnx``, ``field_fp16.onnx``, ``field_int8.onnx``);
 * **view render** — one full test view (the sample's are 128 x 128) with the run's render sampler, DARS off:
-  :meth:`toolkit.run.Run.render` (``deferred=False``) vs :func:`export.infer.render_view` (numpy + ONNX
+  :meth:`toolkit.train.run.Run.render` (``deferred=False``) vs :func:`export.infer.render_view` (numpy + ONNX
   Runtime), plus each variant's PSNR against the ground truth and against the fp32 render.
 
 Ratios are against torch eager (kernel) at the same thread count. Wall times are medians of ``--repeats``
@@ -72,7 +72,7 @@ def main(argv=None) -> int:
     from export.field_onnx import FieldExportConfig, FieldOnnxModule, _TorchHashGrid, export_onnx_models
     from toolkit.io import linear_to_srgb
     from toolkit.scene import load_scene
-    from toolkit.run import load_run
+    from toolkit.train import load_run
 
     threads = [int(t) for t in args.threads.split(",") if t.strip()]
     torch.set_num_threads(threads[0])

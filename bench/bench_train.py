@@ -57,7 +57,7 @@ def _eval_psnr(run_dir: Path, split: str, checkpoint: Path | None, views: list[i
     from toolkit.io import linear_to_srgb
     from toolkit.metrics import albedo_mae, material_mask, psnr
     from toolkit.pipeline import RenderInputs, render_image
-    from toolkit.run import load_run
+    from toolkit.train import load_run
     from toolkit.scene import load_scene
 
     torch.set_num_threads(threads)

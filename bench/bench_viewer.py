@@ -112,7 +112,7 @@ def baked_vs_field_psnr(run: Path, asset: Path, views=(0, 7, 14)) -> dict:
     from toolkit.io import linear_to_srgb
     from toolkit.metrics import psnr
     from toolkit.pinhole import PinholeCamera
-    from toolkit.run import load_run
+    from toolkit.train import load_run
     from toolkit.scene import load_scene
     from viewers.preview import OffscreenPreview, PreviewConfig
 

@@ -27,7 +27,7 @@ test view), max abs error ≤ ``tol`` (1e-4; for ``density``, which is in 1/m an
 surfaces, the bound is ``tol · max(1, |σ|)``, i.e. 1e-4 relative above 1, since float32 resolves only ~1e-7
 relative; both figures are reported, and on the sample runs even the raw density error is ~2e-5); then one test
 view is rendered by :func:`export.infer.render_view` (numpy + ONNX Runtime, no torch) and by
-:meth:`toolkit.run.Run.render` and their PSNRs against the ground truth must agree within ``psnr_tol``
+:meth:`toolkit.train.run.Run.render` and their PSNRs against the ground truth must agree within ``psnr_tol``
 (0.05 dB). DARS along-ray density is a render-time prior from the training W maps, not part of the device path:
 the torch reference for the check has it disabled; with it on, its PSNR is reported as well.
 
@@ -506,7 +506,7 @@ def export_onnx_models(run_dir: str | os.PathLike, out_dir: str | os.PathLike, o
         OnnxParityError: ONNX Runtime disagrees with torch beyond ``cfg.tol`` / ``cfg.psnr_tol`` (files are kept
             for inspection; ``metadata.json`` is not written).
     """
-    from toolkit.run import load_run
+    from toolkit.train import load_run
 
     log = log or (lambda m: None)
     bad = [p for p in precision if p not in PRECISIONS]

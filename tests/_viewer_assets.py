@@ -88,7 +88,7 @@ def surface_level(run: Path, samples: int = 200_000) -> float:
 
     import torch
 
-    from toolkit.run import load_field_callables
+    from toolkit.train import load_field_callables
 
     density_fn, _, aabb, _, _ = load_field_callables(run)
     gen = torch.Generator().manual_seed(0)

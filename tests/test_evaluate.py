@@ -230,7 +230,7 @@ def test_chamfer_against_reference_mesh(run_dir, tmp_path):
 def test_chamfer_of_an_analytic_sphere_is_small(run_dir, tmp_path, monkeypatch):
     import trimesh
 
-    import toolkit.run as T
+    import toolkit.train.run as T
     from toolkit.evaluate import chamfer_to_reference
 
     ref = tmp_path / "sphere.ply"

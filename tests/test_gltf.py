@@ -272,15 +272,15 @@ def _ring_cameras(n=8, dist=2.5, size=48, focal=50.0):
 
 @pytest.fixture
 def fake_field(monkeypatch):
-    """A stand-in for toolkit.run.load_field_callables: a sphere with a colourful material."""
-    import toolkit.run
+    """A stand-in for toolkit.train.run.load_field_callables: a sphere with a colourful material."""
+    import toolkit.train.run
 
     def load_field_callables(run_dir):
         density = lambda p: 1e3 * torch.sigmoid((0.5 - p.norm(dim=-1)) * 400)  # noqa: E731  (opaque at r ≈ 0.51)
         aabb = torch.tensor([[-1.0] * 3, [1.0] * 3])
         return density, material_fn, aabb, torch.as_tensor(SH), _ring_cameras()
 
-    monkeypatch.setattr(toolkit.run, "load_field_callables", load_field_callables)
+    monkeypatch.setattr(toolkit.train.run, "load_field_callables", load_field_callables)
     return load_field_callables
 
 

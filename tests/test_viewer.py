@@ -538,7 +538,7 @@ def test_baked_sample_matches_the_field_render(tmp_path_factory, gl):
     """
     from toolkit.metrics import psnr
     from toolkit.pinhole import PinholeCamera
-    from toolkit.run import load_run
+    from toolkit.train import load_run
     from toolkit.scene import load_scene
     from viewers.preview import OffscreenPreview, PreviewConfig
 

@@ -153,7 +153,7 @@ def run_ablation(
     """
     from .evaluate import EvalConfig, evaluate_run, variant_of
     from .report import write_ablation_report, write_eval_report
-    from .run import load_run
+    from .train.run import load_run
     from .train import TrainConfig, make_config, train
 
     log = log or (lambda m: print(m, file=sys.stderr))

@@ -2,7 +2,7 @@
 
 :func:`build_asset` runs the whole chain with one frozen :class:`AssetConfig` (what ``dars export-asset`` does before
 it writes the GLB with :func:`export.gltf.export_gltf`); :func:`build_mesh` and :func:`bake_mesh` are its two halves
-(``dars mesh``, ``dars bake``). The field comes as callables (:class:`toolkit.run.FieldCallables`: density, materials,
+(``dars mesh``, ``dars bake``). The field comes as callables (:class:`toolkit.train.run.FieldCallables`: density, materials,
 box, SH light, training cameras), so these functions never own the model.
 
 Example:
@@ -25,7 +25,7 @@ from ._checks import ConfigError, DarsError
 from .bake import PBRTextures, UVMesh
 from .io import atomic_write, write_png
 from .mesh import Mesh
-from .run import FieldCallables, Run, field_callables
+from .train.run import FieldCallables, Run, field_callables
 
 __all__ = ["AssetConfig", "Asset", "build_asset", "build_mesh", "bake_mesh", "asset_field", "write_textures",
            "write_uv_obj"]
@@ -115,7 +115,7 @@ class Asset:
 
 
 def asset_field(run: str | Path | Run | FieldCallables) -> FieldCallables:
-    """The field callables of a run directory, a loaded :class:`~toolkit.run.Run`, or callables as they are.
+    """The field callables of a run directory, a loaded :class:`~toolkit.train.run.Run`, or callables as they are.
 
     Raises:
         DarsError: ``run`` is a path that is not a directory (or not a training run).
@@ -129,7 +129,7 @@ def asset_field(run: str | Path | Run | FieldCallables) -> FieldCallables:
     run_dir = Path(run)
     if not run_dir.is_dir():
         raise DarsError(f"RUN directory not found: {run_dir} (give the --out directory of `dars train`)")
-    from . import run as run_module  # looked up at call time: tests stand a fake field in for it
+    from .train import run as run_module  # looked up at call time: tests stand a fake field in for it
 
     return FieldCallables(*run_module.load_field_callables(run_dir))
 
@@ -209,7 +209,7 @@ def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = Asset
     """Field → mesh → baked textures: :func:`build_mesh` then :func:`bake_mesh`.
 
     Args:
-        run: a run directory, a loaded :class:`~toolkit.run.Run` or :class:`~toolkit.run.FieldCallables`.
+        run: a run directory, a loaded :class:`~toolkit.train.run.Run` or :class:`~toolkit.train.run.FieldCallables`.
         cfg: the options.
 
     Raises:

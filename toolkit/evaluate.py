@@ -390,7 +390,7 @@ def chamfer_to_reference(run, reference_mesh: str | Path, resolution: int = 128,
         ``{"value": None, "reason": ...}`` when the field has no surface at the opacity level.
     """
     from .mesh import MeshConfig, extract_mesh, load_mesh, mesh_distance
-    from .run import field_callables
+    from .train.run import field_callables
 
     ref = load_mesh(reference_mesh)
     density_fn, _ = field_callables(run)
@@ -438,7 +438,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     """Render every view of ``split`` and compute every metric the data supports (module docstring).
 
     Args:
-        run: a loaded run (:func:`toolkit.run.load_run`).
+        run: a loaded run (:func:`toolkit.train.load_run`).
         split: split of the run's scene to evaluate (``test`` by default).
         cfg: options (:class:`EvalConfig`).
         log: callable for progress lines (default: stderr).
@@ -455,11 +455,11 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     """
     from tqdm import tqdm
 
-    from .run import Run
+    from .train.run import Run
 
     log = log or (lambda m: print(m, file=sys.stderr))
     if not isinstance(run, Run):
-        raise DarsError(f"evaluate_run: expected a loaded run (toolkit.run.load_run(RUN)), got {type(run).__name__}")
+        raise DarsError(f"evaluate_run: expected a loaded run (toolkit.train.load_run(RUN)), got {type(run).__name__}")
     scene = load_scene(run.scene_path, split)
     if len(scene) == 0:
         raise DarsError(f"evaluate_run: split '{split}' of {run.scene_path} has no views")

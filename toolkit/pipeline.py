@@ -8,7 +8,7 @@ ablations and the ONNX parity check all go through it. What to render with is sp
   the DARS context.
 
 :func:`render_image` renders every output of one camera into a :class:`RenderedImage`;
-:meth:`toolkit.run.Run.render` does so with a trained run's own settings.
+:meth:`toolkit.train.run.Run.render` does so with a trained run's own settings.
 """
 
 from __future__ import annotations
@@ -111,7 +111,7 @@ class DarsContext:
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """How to render: what a run fixes (:meth:`toolkit.run.Run.render_config` builds the run's own)."""
+    """How to render: what a run fixes (:meth:`toolkit.train.run.Run.render_config` builds the run's own)."""
 
     sampler: SamplerConfig = dc_field(default_factory=SamplerConfig)
     """Sample counts and DARS switches (a run renders test views with its ``render_sampler``)."""

@@ -52,7 +52,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def cmd_eval(args: argparse.Namespace) -> int:
     from ..evaluate import EvalConfig, evaluate_run
     from ..report import headline_text, write_eval_report
-    from ..run import load_run
+    from ..train.run import load_run
 
     set_threads(args.threads)
     run_dir = Path(args.run)

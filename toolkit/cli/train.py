@@ -127,7 +127,7 @@ def _cameras_for(args, run):
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from ..run import load_run, render_views
+    from ..train.run import load_run, render_views
 
     run = load_run(args.run, args.checkpoint)
     cams, keys = _cameras_for(args, run)
@@ -146,7 +146,7 @@ def cmd_relight(args: argparse.Namespace) -> int:
 
     from ..io import write_json
     from ..relight import parse_material_edit, relight_hook
-    from ..run import load_run, render_views
+    from ..train.run import load_run, render_views
     from ..sh import fit_sh_probe, read_envmap, read_sh_json, rotation_x
 
     if not args.probe and not args.sh and not args.edit:

@@ -17,8 +17,8 @@ A run directory holds ``config.json``, ``checkpoint.pt``, ``log.jsonl``, ``loss_
 Modules: :mod:`~toolkit.train.config` (:class:`TrainConfig`, presets, :func:`resolve_config`),
 :mod:`~toolkit.train.data` (:func:`prepare_data`, through :func:`toolkit.priors.read_priors`),
 :mod:`~toolkit.train.step` (state, batches, the field and light steps), :mod:`~toolkit.train.loop` (:func:`train`,
-checkpoints). Loading a finished run is :mod:`toolkit.run` (:func:`~toolkit.run.load_run`); its names are
-re-exported here for old imports, loaded on first use (``toolkit.run`` imports this package, not the other way).
+checkpoints) and :mod:`~toolkit.train.run` (a finished run: :func:`load_run`, :meth:`Run.render`, the field as
+callables for meshing and baking). Every public name is importable from :mod:`toolkit.train`.
 """
 
 from __future__ import annotations
@@ -26,19 +26,10 @@ from __future__ import annotations
 from .config import PRESETS, ROOM_SHELL, SHELL_FADE, TrainConfig, make_config, resolve_config
 from .data import TrainData, grey_ambient_sh, prepare_data
 from .loop import load_checkpoint, save_checkpoint, train
+from .run import FieldCallables, Run, field_callables, load_field_callables, load_run, render_views
 from .step import MAX_BAD_STEPS, TrainingDiverged, TrainState, init_state, light_step, progress, sample_batch, train_step
 
 __all__ = ["TrainConfig", "make_config", "PRESETS", "TrainData", "TrainState", "prepare_data", "init_state",
            "train_step", "light_step", "train", "save_checkpoint", "load_checkpoint", "Run", "load_run",
-           "TrainingDiverged", "grey_ambient_sh", "resolve_config", "field_callables", "load_field_callables",
-           "ROOM_SHELL", "SHELL_FADE", "MAX_BAD_STEPS", "progress", "sample_batch"]
-
-_FROM_RUN = ("Run", "load_run", "field_callables", "load_field_callables")
-
-
-def __getattr__(name: str):
-    if name in _FROM_RUN:  # lazily: importing toolkit.run here would be an import cycle
-        from .. import run
-
-        return getattr(run, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+           "render_views", "TrainingDiverged", "grey_ambient_sh", "resolve_config", "FieldCallables", "field_callables",
+           "load_field_callables", "ROOM_SHELL", "SHELL_FADE", "MAX_BAD_STEPS", "progress", "sample_batch"]

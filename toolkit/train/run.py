@@ -1,4 +1,4 @@
-"""A trained run: :func:`load_run` reads a run directory written by :func:`toolkit.train.train` into a :class:`Run`
+"""A trained run: :func:`load_run` reads a run directory written by :func:`~toolkit.train.train` into a :class:`Run`
 (field, background, light, occupancy, the training scene and its W maps) for rendering, evaluation and export;
 :func:`field_callables` / :func:`load_field_callables` give the meshing and baking stages the field as callables.
 
@@ -17,15 +17,15 @@ from typing import Callable, NamedTuple
 
 import torch
 
-from ._checks import DarsError
-from .cameras import Cameras
-from .field import DarsField
-from .pipeline import Background, RenderConfig, RenderedImage, RenderInputs, render_dars_context, render_image
-from .priors import priors_path
-from .sampling import OccupancyGrid
-from .scene import Scene, load_scene
-from .train.config import TrainConfig
-from .train.data import prepare_data
+from .._checks import DarsError
+from ..cameras import Cameras
+from ..field import DarsField
+from ..pipeline import Background, RenderConfig, RenderedImage, RenderInputs, render_dars_context, render_image
+from ..priors import priors_path
+from ..sampling import OccupancyGrid
+from ..scene import Scene, load_scene
+from .config import TrainConfig
+from .data import prepare_data
 
 __all__ = ["Run", "load_run", "render_views", "FieldCallables", "field_callables", "load_field_callables"]
 
@@ -130,8 +130,8 @@ def render_views(run: Run, cameras: Cameras, keys: list[str], out_dir: str | Pat
     """
     from tqdm import tqdm
 
-    from .io import write_png
-    from .visualise import render_output_images
+    from ..io import write_png
+    from ..visualise import render_output_images
 
     out = Path(out_dir)
     n = len(cameras) if not limit else min(limit, len(cameras))
