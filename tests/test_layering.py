@@ -7,8 +7,8 @@ Rules:
 2. ``export`` never imports ``viewers`` (every import counts, as in 1).
 3. No import cycle among the modules of ``toolkit``, ``export`` and ``viewers``. Imports inside functions count too
    (a lazy import hides a cycle from Python, not from the reader: the three cycles issue 15 removed —
-   field → train → pipeline → field, ``_cli_light`` ↔ ``_cli_priors``, ``viewers/preview`` ↔ ``shading_glsl`` — were all
-   function-local); only ``if TYPE_CHECKING:`` blocks, which never run, are left out. Importing ``a.b.c`` also runs the
+   field → train → pipeline → field, ``_cli_light`` ↔ ``_cli_priors``, ``viewers/preview`` ↔ ``shading_glsl`` —
+   were all function-local); only ``if TYPE_CHECKING:`` blocks, which never run, are left out. Importing ``a.b.c`` also runs the
    packages ``a`` and ``a.b``, so it counts as importing them too — except for the importing module's own parent
    packages (a package importing its submodules is not a cycle).
 
@@ -65,7 +65,8 @@ def scan_imports(root: Path, packages: tuple[str, ...] = PACKAGES) -> tuple[set[
 
         def visit(node: ast.AST, runtime: bool) -> None:
             for child in ast.iter_child_nodes(node):
-                child_runtime = runtime and not (isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test))
+                type_checking = isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test)
+                child_runtime = runtime and not type_checking
                 if isinstance(child, ast.Import):
                     for alias in child.names:
                         found.append(Import(mod, alias.name, runtime, child.lineno))

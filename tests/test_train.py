@@ -31,7 +31,8 @@ def _test_psnr(run_dir):
     for i in range(len(sc)):
         o = render_image(run.field, sc.cameras, i,
                          RenderConfig(sampler=run.cfg.render_sampler, shading=run.cfg.shading, deferred=True),
-                         RenderInputs(run.occupancy, run.l_env, run.background, sc.aabb, run.dars_for(sc.cameras.c2w[i])))
+                         RenderInputs(run.occupancy, run.l_env, run.background, sc.aabb,
+                                      run.dars_for(sc.cameras.c2w[i])))
         vals.append(float(psnr(linear_to_srgb(o.rgb.clamp(0, 1)).permute(2, 0, 1), sc.load_image(i))))
     return sum(vals) / len(vals)
 

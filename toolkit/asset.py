@@ -2,8 +2,8 @@
 
 :func:`build_asset` runs the whole chain with one frozen :class:`AssetConfig` (what ``dars export-asset`` does before
 it writes the GLB with :func:`export.gltf.export_gltf`); :func:`build_mesh` and :func:`bake_mesh` are its two halves
-(``dars mesh``, ``dars bake``). The field comes as callables (:class:`toolkit.train.run.FieldCallables`: density, materials,
-box, SH light, training cameras), so these functions never own the model.
+(``dars mesh``, ``dars bake``). The field comes as callables (:class:`toolkit.train.run.FieldCallables`: density,
+materials, box, SH light, training cameras), so these functions never own the model.
 
 Example:
     >>> asset = build_asset("out/run", AssetConfig(resolution=128, texture=512))   # doctest: +SKIP

@@ -13,9 +13,11 @@ from .._checks import ShapeError, check_shape
 __all__ = ["Mesh", "DensityFn", "MaterialFn", "compute_vertex_normals"]
 
 DensityFn = Callable[[torch.Tensor], "torch.Tensor | np.ndarray"]
-"""``density_fn(points float [N, 3]) -> float [N]``: σ in 1/metre at world points (torch tensor in, tensor or array out)."""
+"""``density_fn(points float [N, 3]) -> float [N]``: σ in 1/metre at world points (a torch tensor in; a tensor or an
+array out)."""
 MaterialFn = Callable[[torch.Tensor, "torch.Tensor | None"], Mapping[str, "torch.Tensor | np.ndarray"]]
-"""``material_fn(points [N, 3], normals [N, 3] | None) -> {"albedo", "roughness", "metallic", "normal", "semantic"}``."""
+"""``material_fn(points [N, 3], normals [N, 3] | None) -> {"albedo", "roughness", "metallic", "normal",
+"semantic"}`` (see :func:`toolkit.train.field_callables`)."""
 
 
 @dataclass(frozen=True)

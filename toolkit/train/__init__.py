@@ -27,7 +27,8 @@ from .config import PRESETS, ROOM_SHELL, SHELL_FADE, TrainConfig, make_config, r
 from .data import TrainData, grey_ambient_sh, prepare_data
 from .loop import load_checkpoint, save_checkpoint, train
 from .run import FieldCallables, Run, field_callables, load_field_callables, load_run, render_views
-from .step import MAX_BAD_STEPS, TrainingDiverged, TrainState, init_state, light_step, progress, sample_batch, train_step
+from .step import (MAX_BAD_STEPS, TrainingDiverged, TrainState, init_state, light_step, progress, sample_batch,
+                   train_step)
 
 __all__ = ["TrainConfig", "make_config", "PRESETS", "TrainData", "TrainState", "prepare_data", "init_state",
            "train_step", "light_step", "train", "save_checkpoint", "load_checkpoint", "Run", "load_run",
