@@ -32,7 +32,18 @@ __all__ = ["Run", "load_run", "render_views", "FieldCallables", "field_callables
 
 @dataclass
 class Run:
-    """A trained run loaded for rendering, evaluation and export."""
+    """A trained run loaded for rendering, evaluation and export (:func:`load_run`).
+
+    Attributes:
+        path: the run directory.
+        cfg: its :class:`~toolkit.train.TrainConfig` (``config.json``).
+        scene_path, split: the scene and split it trained on.
+        field, background, l_env, occupancy: the trained state (l_env: float [9, 3] SH light).
+        train_scene: the training split (its box, near/far and cameras are the run's).
+        weight_maps: float [V, H, W] W maps of the training views (DARS at render time), or None.
+        step, elapsed: training steps and seconds done.
+        meta: ``config.json`` as a dict (priors used, initial light, ...).
+    """
 
     path: Path
     cfg: TrainConfig
