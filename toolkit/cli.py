@@ -123,6 +123,7 @@ _COMMAND_MODULES: tuple[tuple[str, str], ...] = (
     ("_cli_view", "view, export-web"),
     ("_cli_export", "export-onnx, infer"),
     ("_cli_eval", "eval, ablate"),
+    ("_cli_poses", "poses"),
 )
 """Modules that register subcommands with ``add_parser(subparsers)``, imported lazily so one broken optional
 dependency cannot take the whole CLI down."""
