@@ -319,3 +319,35 @@ def test_unrelated_photos_are_named(tmp_path):
     assert manifest["status"] == "failed" and set(manifest["unregistered"]) == unregistered
     ok = estimate_poses(photos, tmp_path / "scene", PosesConfig(resume=True, min_registered=0.6, num_threads=2))
     assert ok.num_registered == 7 and set(ok.unregistered) == unregistered
+
+
+def test_sequential_pairs_follow_colmap():
+    from toolkit.poses import _pairs
+
+    names = [f"{i}.jpg" for i in range(40)]
+    pairs = set(_pairs(names, "sequential", 3))
+    assert ("0.jpg", "3.jpg") in pairs and ("0.jpg", "4.jpg") in pairs and ("0.jpg", "5.jpg") not in pairs
+    assert len(_pairs(names, "exhaustive", 3)) == 40 * 39 // 2
+    assert list_photos(Path(shared("real", "fox", "images")))[0][:2] == ["0001.jpg", "0002.jpg"]
+
+
+def test_fox_sequential_per_photo_cameras(fox_run, tmp_path):
+    from toolkit.scene import load_scene
+
+    photos = fox_run[0]
+    result = estimate_poses(photos, tmp_path / "seq", PosesConfig(matcher="sequential", overlap=3, single_camera=False,
+                                                                  min_registered=0.5, num_threads=2))
+    assert result.matcher == "sequential" and result.num_cameras == result.num_registered >= 5
+    doc = json.loads((tmp_path / "seq" / "transforms.json").read_text())
+    assert "fl_x" not in doc and all("fl_x" in f and "w" in f for f in doc["frames"])
+    assert len(load_scene(tmp_path / "seq", "all")) == result.num_registered
+
+
+def test_photo_names_with_spaces(fox_run, tmp_path):
+    photos = tmp_path / "my photos"
+    photos.mkdir()
+    for p in sorted(fox_run[0].glob("*.jpg"))[:6]:
+        shutil.copy(p, photos / f"IMG {p.name}")  # COLMAP's pair lists are space-separated: dars must not use them
+    result = estimate_poses(photos, tmp_path / "scene", PosesConfig(num_threads=2, min_registered=0.5))
+    assert result.num_registered >= 4 and all(n.startswith("IMG ") for n in result.names)
+    assert (tmp_path / "scene" / "images" / result.names[0]).is_file()

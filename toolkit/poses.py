@@ -446,6 +446,20 @@ def _match(pycolmap, db_path: Path, work: Path, names: list[str], matcher: str, 
         log(f"matching: {len(pairs) - len(todo)} of {len(pairs)} pairs already matched")
     mo = pycolmap.FeatureMatchingOptions()
     mo.num_threads = cfg.num_threads
+    sp = pycolmap.SequentialPairingOptions()
+    sp.overlap = cfg.overlap
+    if cfg.vocab_tree:
+        sp.loop_detection = True
+        sp.vocab_tree_path = Path(cfg.vocab_tree)
+    if any(c.isspace() for n in names for c in n):
+        # COLMAP's pair lists are space-separated: let its own matchers pair the photos (no per-pair progress; its
+        # sequential order is the plain name order)
+        with _bar(cfg, f"matching ({matcher}, COLMAP's pairing: names with spaces)", None) as bar:
+            _run_cancellable(pycolmap, lambda tok: pycolmap.match_exhaustive(
+                db_path, matching_options=mo, cancellation_token=tok) if matcher == "exhaustive" else
+                pycolmap.match_sequential(db_path, matching_options=mo, pairing_options=sp, cancellation_token=tok),
+                bar, "feature matching")
+        return len(pairs)
     chunk = int(np.clip(len(todo) // 50, 32, 512))
     pairs_file = work / "pairs.txt"
     with _bar(cfg, f"matching ({matcher})", len(todo), "pair") as bar:
@@ -458,14 +472,10 @@ def _match(pycolmap, db_path: Path, work: Path, names: list[str], matcher: str, 
                 db_path, matching_options=mo, pairing_options=po, cancellation_token=tok), bar, "feature matching")
             bar.update(len(part))
     pairs_file.unlink(missing_ok=True)
-    if matcher == "sequential" and cfg.vocab_tree:
-        po = pycolmap.SequentialPairingOptions()
-        po.overlap = cfg.overlap
-        po.loop_detection = True
-        po.vocab_tree_path = Path(cfg.vocab_tree)
+    if matcher == "sequential" and cfg.vocab_tree:  # the neighbours are matched: this adds the loop pairs
         with _bar(cfg, "loop closure (vocabulary tree)", None) as bar:
             _run_cancellable(pycolmap, lambda tok: pycolmap.match_sequential(
-                db_path, matching_options=mo, pairing_options=po, cancellation_token=tok), bar, "loop detection")
+                db_path, matching_options=mo, pairing_options=sp, cancellation_token=tok), bar, "loop detection")
     return len(pairs)
 
 
