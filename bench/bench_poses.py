@@ -12,7 +12,7 @@ Prints registered/total, reprojection error, time, rotation and centre errors; w
 ``bench/out/poses/bench_poses.json``.
 
 Usage: ``python bench/bench_poses.py [--photos DIR] [--reference transforms.json] [--max-size 1600]
-[--threads 2] [--out bench/out/poses]``.
+[--threads 2] [--out bench/out/poses] [--reuse]`` (``--reuse``: compare the scene left by an earlier run).
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ def main() -> int:
     ap.add_argument("--matcher", default="auto")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=str(ROOT / "bench" / "out" / "poses"))
+    ap.add_argument("--reuse", action="store_true", help="compare the scene an earlier run left in OUT (no SfM run)")
     args = ap.parse_args()
 
     import numpy as np
@@ -53,20 +54,24 @@ def main() -> int:
         return 0
     out = Path(args.out)
     scene = out / "fox_scene"
-    if scene.exists():
-        shutil.rmtree(scene)
-    out.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "toolkit.cli", "poses", str(photos), "--out", str(scene), "--max-size",
            str(args.max_size), "--matcher", args.matcher, "--threads", str(args.threads), "--json"]
-    print("$ dars " + " ".join(cmd[3:]), flush=True)
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=ROOT, stdout=subprocess.PIPE, text=True,
-                          env={**os.environ, "OMP_NUM_THREADS": str(args.threads)})
-    wall = time.perf_counter() - t0
-    if proc.returncode != 0:
-        print(f"bench_poses: dars poses failed (exit {proc.returncode})")
-        return 1
-    res = json.loads(proc.stdout)
+    if args.reuse:
+        manifest = json.loads((scene / "dars_manifest.json").read_text())
+        res, wall = manifest["result"], None
+    else:
+        if scene.exists():
+            shutil.rmtree(scene)
+        out.mkdir(parents=True, exist_ok=True)
+        print("$ dars " + " ".join(cmd[3:]), flush=True)
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, cwd=ROOT, stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "OMP_NUM_THREADS": str(args.threads)})
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            print(f"bench_poses: dars poses failed (exit {proc.returncode})")
+            return 1
+        res = json.loads(proc.stdout)
 
     ours = json.loads((scene / "transforms.json").read_text())
     given = json.loads(ref_file.read_text())
@@ -86,6 +91,7 @@ def main() -> int:
         "mean_reprojection_error_px": res["mean_reprojection_error_px"], "points": res["points"],
         "seconds_dars": res["seconds"], "seconds_wall": wall, "timings": res["timings"],
         "compared": len(common), "rotation_error_deg": rot, "centre_error_rel": cen, "alignment_scale": cmp["scale"],
+        "relative_rotation_error_deg": cmp["relative_rotation_error_deg"], "rotation_offset_deg": cmp["rotation_offset_deg"],
         "up_from": res["up_from"], "up_angle_to_given_deg": up_angle, "load_scene_frames": loaded,
         "targets": {"registered_fraction": 0.95, "median_rotation_error_deg": 2.0},
         "passed": bool(frac >= 0.95 and rot["median"] <= 2.0),
@@ -94,10 +100,14 @@ def main() -> int:
     (out / "bench_poses.json").write_text(json.dumps(report, indent=2))
     print(f"registered        {res['registered']}/{res['photos']} ({100 * frac:.0f} %, target >= 95 %)")
     print(f"reprojection      {res['mean_reprojection_error_px']:.3f} px mean, {res['points']} points")
-    print(f"time              {res['seconds']:.1f} s in dars poses ({wall:.1f} s wall with start-up; "
+    print(f"time              {res['seconds']:.1f} s in dars poses ("
+          + (f"{wall:.1f} s wall with start-up; " if wall is not None else "")
           + ", ".join(f"{k} {v:.1f} s" for k, v in res["timings"].items()) + ")")
     print(f"rotation error    median {rot['median']:.3f} deg, max {rot['max']:.3f} deg (target median <= 2 deg; "
           f"{len(common)} cameras)")
+    rel = cmp["relative_rotation_error_deg"]
+    print(f"                  of which a common offset of {cmp['rotation_offset_deg']:.3f} deg (the centre alignment's); "
+          f"without it median {rel['median']:.3f} deg, max {rel['max']:.3f} deg")
     print(f"centre error      median {100 * cen['median']:.2f} %, max {100 * cen['max']:.2f} % of the camera spread")
     print(f"upright           up from {res['up_from']}; {up_angle:.1f} deg from the given frame's +z (colmap2nerf: mean camera up)")
     print(f"load_scene        {loaded} frames; {'PASS' if report['passed'] else 'FAIL'}; wrote {out / 'bench_poses.json'}")

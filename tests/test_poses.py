@@ -127,6 +127,10 @@ def test_rotation_between_and_similarity():
     errs = compare_poses(c2w, ref)
     assert errs["rotation_error_deg"]["max"] < 1e-5 and errs["centre_error_rel"]["max"] < 1e-9
     assert np.isclose(errs["scale"], s)
+    ref[:, :3, :3] = ref[:, :3, :3] @ _rot([0, 1, 0], 1.5)  # every camera turned by the same 1.5 deg
+    errs = compare_poses(c2w, ref)
+    assert np.allclose(errs["rotation_error_deg"]["per_camera"], 1.5, atol=1e-6)
+    assert np.isclose(errs["rotation_offset_deg"], 1.5) and errs["relative_rotation_error_deg"]["max"] < 1e-5
 
 
 # --------------------------------------------------------------------------------------- transforms writer

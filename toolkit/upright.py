@@ -285,7 +285,10 @@ def compare_poses(c2w_est, c2w_ref) -> dict:
 
     Returns:
         dict with ``rotation_error_deg`` (median, mean, max, per_camera), ``centre_error_rel`` (median, mean, max,
-        per_camera), ``scale``, ``rotation`` (float [3, 3] list) and ``translation`` of the alignment.
+        per_camera), ``scale``, ``rotation`` (float [3, 3] list) and ``translation`` of the alignment, and
+        ``relative_rotation_error_deg``: the rotation errors once the common rotation offset left by the centre
+        alignment (``rotation_offset_deg``, the chordal mean of the per-camera errors) is removed too — the errors
+        of the cameras relative to each other.
     """
     est, ref = np.asarray(c2w_est, np.float64), np.asarray(c2w_ref, np.float64)
     if est.shape != ref.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
@@ -295,6 +298,9 @@ def compare_poses(c2w_est, c2w_ref) -> dict:
     rel = np.swapaxes(rot_al, 1, 2) @ ref[:, :3, :3]
     cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
     rot_err = np.degrees(np.arccos(cos))
+    u, _, vt = np.linalg.svd(rel.sum(0))
+    offset = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    cos_rel = np.clip((np.trace(offset.T[None] @ rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
     centres = s * est[:, :3, 3] @ R.T + t
     spread = float(np.sqrt(((ref[:, :3, 3] - ref[:, :3, 3].mean(0)) ** 2).sum(1).mean()))
     cen_err = np.linalg.norm(centres - ref[:, :3, 3], axis=1) / max(spread, 1e-300)
@@ -304,4 +310,6 @@ def compare_poses(c2w_est, c2w_ref) -> dict:
                 "per_camera": [float(v) for v in x]}
 
     return {"rotation_error_deg": stats(rot_err), "centre_error_rel": stats(cen_err), "scale": s,
-            "rotation": R.tolist(), "translation": t.tolist(), "camera_spread": spread}
+            "rotation": R.tolist(), "translation": t.tolist(), "camera_spread": spread,
+            "relative_rotation_error_deg": stats(np.degrees(np.arccos(cos_rel))),
+            "rotation_offset_deg": float(np.degrees(np.arccos(np.clip((np.trace(offset) - 1) / 2, -1, 1))))}
