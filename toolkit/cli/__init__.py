@@ -15,12 +15,12 @@ import argparse
 import sys
 
 from .._checks import DarsError
-from . import asset, evaluate, info, onnx, priors, train, view
+from . import asset, evaluate, info, onnx, poses, priors, train, view
 
 __all__ = ["COMMANDS", "build_parser", "main"]
 
-COMMANDS = (info, train, priors, asset, view, onnx, evaluate)
-"""The subcommand modules, in ``dars --help`` order: info and contact-sheet; train, render, relight; priors; mesh,
+COMMANDS = (info, poses, train, priors, asset, view, onnx, evaluate)
+"""The subcommand modules, in ``dars --help`` order: info and contact-sheet; poses; train, render, relight; priors; mesh,
 bake, export-asset; view, export-web; export-onnx, infer; eval, ablate."""
 
 
