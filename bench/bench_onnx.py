@@ -8,7 +8,7 @@ Measures, for each thread count (``--threads 1,2``):
   torch eager with the plain-torch encoding (the code the graph is traced from), and ONNX Runtime fp32 / fp16 /
   int8 (``field.onnx``, ``field_fp16.onnx``, ``field_int8.onnx``);
 * **view render** — one full test view (the sample's are 128 x 128) with the run's render sampler, DARS off:
-  :func:`toolkit.pipeline.render_image` (``deferred=False``) vs :func:`export.infer.render_view` (numpy + ONNX
+  :meth:`toolkit.train.run.Run.render` (``deferred=False``) vs :func:`export.infer.render_view` (numpy + ONNX
   Runtime), plus each variant's PSNR against the ground truth and against the fp32 render.
 
 Ratios are against torch eager (kernel) at the same thread count. Wall times are medians of ``--repeats``
@@ -71,7 +71,6 @@ def main(argv=None) -> int:
     from export import infer
     from export.field_onnx import FieldExportConfig, FieldOnnxModule, _TorchHashGrid, export_onnx_models
     from toolkit.io import linear_to_srgb
-    from toolkit.pipeline import render_image
     from toolkit.scene import load_scene
     from toolkit.train import load_run
 
@@ -92,9 +91,7 @@ def main(argv=None) -> int:
     split, index = args.view.rsplit(":", 1)
     sc = load_scene(run.scene_path, split)
     index = int(index)
-    c = sc.cameras
-    cam = infer.PinholeCamera(c.c2w[index].numpy(), float(c.fx[index]), float(c.fy[index]), float(c.cx[index]),
-                              float(c.cy[index]), int(c.width[index]), int(c.height[index]))
+    cam = infer.PinholeCamera.from_cameras(sc.cameras, index)
     gt = sc.load_image(index).numpy().transpose(1, 2, 0)
     srgb = lambda x: np.clip(linear_to_srgb(np.clip(x, 0, 1)), 0, 1)  # noqa: E731
     sampler = replace(run.cfg.render_sampler, dars=False)
@@ -119,11 +116,9 @@ def main(argv=None) -> int:
         if not args.no_view:
             t0 = time.perf_counter()
             with torch.no_grad():
-                o = render_image(run.field, sc.cameras, index, sampler, run.occupancy, run.l_env, run.background,
-                                 run.train_scene.aabb, run.cfg.shading, None, near=run.train_scene.near,
-                                 far=run.train_scene.far, deferred=False)
+                o = run.render(sc.cameras, index, sampler=sampler, deferred=False)
             view_torch = time.perf_counter() - t0
-            torch_rgb = o["rgb"].numpy()
+            torch_rgb = o.rgb.numpy()
         base = {"threads": nt, "points": args.points}
         rows.append({**base, "backend": "torch eager (C++ kernel)", "precision": "fp32", "field_s": t_kernel,
                      "view_s": view_torch, "psnr_gt": _psnr(srgb(torch_rgb), gt) if view_torch else None})

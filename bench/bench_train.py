@@ -56,9 +56,9 @@ def _eval_psnr(run_dir: Path, split: str, checkpoint: Path | None, views: list[i
 
     from toolkit.io import linear_to_srgb
     from toolkit.metrics import albedo_mae, material_mask, psnr
-    from toolkit.pipeline import render_image
-    from toolkit.scene import load_scene
+    from toolkit.pipeline import RenderInputs, render_image
     from toolkit.train import load_run
+    from toolkit.scene import load_scene
 
     torch.set_num_threads(threads)
     run = load_run(run_dir, checkpoint)
@@ -67,9 +67,9 @@ def _eval_psnr(run_dir: Path, split: str, checkpoint: Path | None, views: list[i
     ps, maes, nmae = [], [], []
     t0 = time.time()
     for i in idx:
-        o = render_image(run.field, sc.cameras, i, run.cfg.render_sampler, run.occupancy, run.l_env, run.background,
-                         sc.aabb, run.cfg.shading, run.dars_for(sc.cameras.c2w[i]), near=sc.near, far=sc.far,
-                         deferred=run.cfg.deferred)
+        o = render_image(run.field, sc.cameras, i, run.render_config(near=sc.near, far=sc.far),
+                         RenderInputs(run.occupancy, run.l_env, run.background, sc.aabb,
+                                      run.dars_for(sc.cameras.c2w[i]))).as_dict()
         ps.append(float(psnr(linear_to_srgb(o["rgb"].clamp(0, 1)).permute(2, 0, 1), sc.load_image(i))))
         if sc.has_extra("normal"):
             gt_n = sc.load_extra(i, "normal").permute(1, 2, 0)
@@ -147,7 +147,7 @@ torch.set_num_threads(%d)
 from toolkit.train import make_config, prepare_data, init_state, train_step, resolve_config
 from toolkit.field import FieldConfig
 from toolkit.scene import load_scene
-from toolkit.pipeline import render_image
+from toolkit.pipeline import RenderConfig, RenderInputs, render_image
 kw = json.loads(sys.argv[1])
 enc = kw.pop('encoding')
 scene = load_scene(%r, 'train')
@@ -167,10 +167,10 @@ for i in range(n):
     r = train_step(st, data); st.step += 1
 dt = (time.time() - t) / n
 t = time.time()
-o = render_image(st.field, scene.cameras, 0, cfg.render_sampler, st.occupancy, st.l_env.detach(), st.background,
-                 scene.aabb, cfg.shading, None, chunk=4096)
+o = render_image(st.field, scene.cameras, 0, RenderConfig(sampler=cfg.render_sampler, shading=cfg.shading,
+                 deferred=True, chunk=4096), RenderInputs(st.occupancy, st.l_env.detach(), st.background, scene.aabb))
 rt = time.time() - t
-h, w = o['rgb'].shape[:2]
+h, w = o.rgb.shape[:2]
 print(json.dumps({'train_rays_s': cfg.batch_rays / dt, 'samples_per_ray': r['samples_per_ray'],
                   'render_rays_s': h * w / rt, 'peak_rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """ % (str(ROOT), threads, str(ROOT / "samples" / "gallery"))

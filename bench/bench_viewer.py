@@ -104,17 +104,16 @@ def measure(asset_path: Path, frames: int, modes=("lit", "albedo", "semantics"))
 
 
 def baked_vs_field_psnr(run: Path, asset: Path, views=(0, 7, 14)) -> dict:
-    """Mean PSNR of `dars view` vs render_image (test cameras; pixels the mesh covers and the field renders with
+    """Mean PSNR of `dars view` vs Run.render (test cameras; pixels the mesh covers and the field renders with
     opacity > 0.5), lit and albedo."""
     import numpy as np
     import torch
 
     from toolkit.io import linear_to_srgb
     from toolkit.metrics import psnr
-    from toolkit.pipeline import render_image
-    from toolkit.scene import load_scene
+    from toolkit.pinhole import PinholeCamera
     from toolkit.train import load_run
-    from viewers.camera import ViewCamera
+    from toolkit.scene import load_scene
     from viewers.preview import OffscreenPreview, PreviewConfig
 
     r = load_run(run)
@@ -125,10 +124,8 @@ def baked_vs_field_psnr(run: Path, asset: Path, views=(0, 7, 14)) -> dict:
     with OffscreenPreview(asset) as view:
         for i in views:
             with torch.no_grad():
-                o = render_image(r.field, scene.cameras, i, r.cfg.render_sampler, r.occupancy, r.l_env,
-                                 r.background, scene.aabb, r.cfg.shading, r.dars_for(scene.cameras.c2w[i]),
-                                 near=scene.near, far=scene.far)
-            cam = ViewCamera.from_cameras(scene.cameras, i, near=extent * 1e-3, far=extent * 10)
+                o = r.render(scene.cameras, i, deferred=True).as_dict()
+            cam = PinholeCamera.from_cameras(scene.cameras, i, near=extent * 1e-3, far=extent * 10)
             a, b = view.render(cam), view.render(cam, PreviewConfig(mode="albedo"))
             m = torch.from_numpy(a.mask) & (o["opacity"] > 0.5)
             lit.append(float(psnr(chw(a.to_float()), chw(linear_to_srgb(o["rgb"].clamp(0, 1))), m)))

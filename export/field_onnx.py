@@ -27,7 +27,7 @@ test view), max abs error ≤ ``tol`` (1e-4; for ``density``, which is in 1/m an
 surfaces, the bound is ``tol · max(1, |σ|)``, i.e. 1e-4 relative above 1, since float32 resolves only ~1e-7
 relative; both figures are reported, and on the sample runs even the raw density error is ~2e-5); then one test
 view is rendered by :func:`export.infer.render_view` (numpy + ONNX Runtime, no torch) and by
-:func:`toolkit.pipeline.render_image` and their PSNRs against the ground truth must agree within ``psnr_tol``
+:meth:`toolkit.train.run.Run.render` and their PSNRs against the ground truth must agree within ``psnr_tol``
 (0.05 dB). DARS along-ray density is a render-time prior from the training W maps, not part of the device path:
 the torch reference for the check has it disabled; with it on, its PSNR is reported as well.
 
@@ -53,6 +53,7 @@ from torch import nn
 
 from toolkit._checks import ConfigError, DarsError
 from toolkit.field import DarsField
+from toolkit.pinhole import PinholeCamera
 from toolkit.shading import ShadingConfig, shade_pbr
 from toolkit.sh import SH_C0, SH_C1, SH_C2, SH_C3, SH_C4
 
@@ -402,15 +403,9 @@ def _parity_scene(run, cfg: FieldExportConfig):
     return sc, split
 
 
-def _camera_of(sc, i: int) -> _infer.PinholeCamera:
-    c = sc.cameras
-    return _infer.PinholeCamera(c.c2w[i].cpu().numpy().astype(np.float32), float(c.fx[i]), float(c.fy[i]),
-                                float(c.cx[i]), float(c.cy[i]), int(c.width[i]), int(c.height[i]))
-
-
 def _real_inputs(run, sc, index: int, n_rays: int) -> dict[str, torch.Tensor]:
     """The samples the run's render sampler takes along ``n_rays`` rays of a view (DARS off), as field inputs."""
-    from toolkit.pipeline import render_rays
+    from toolkit.pipeline import RenderInputs, render_rays
     from toolkit.scene import generate_rays
 
     rays = generate_rays(sc.cameras, [index], aabb=run.train_scene.aabb, near=run.train_scene.near,
@@ -422,20 +417,15 @@ def _real_inputs(run, sc, index: int, n_rays: int) -> dict[str, torch.Tensor]:
     sub = rays[pick]
     sampler = replace(run.cfg.render_sampler, dars=False, perturb=False)
     with torch.no_grad(), _TorchHashGrid(run.field):
-        r = render_rays(run.field, sub, sampler, run.occupancy, run.l_env, run.background, run.cfg.shading,
-                        None, deferred=False)
+        r = render_rays(run.field, sub, run.render_config(sampler=sampler, deferred=False),
+                        RenderInputs(run.occupancy, run.l_env, run.background))
     return {"points": r.sample_points.detach(), "view_dirs": sub.directions[r.sample_ray_indices].detach()}
 
 
 def _torch_render(run, sc, index: int, dars: bool) -> tuple[np.ndarray, dict, float]:
-    from toolkit.pipeline import render_image
-
     sampler = run.cfg.render_sampler if dars else replace(run.cfg.render_sampler, dars=False)
-    ctx = run.dars_for(sc.cameras.c2w[index]) if dars else None
     t0 = time.perf_counter()
-    outs = render_image(run.field, sc.cameras, index, sampler, run.occupancy, run.l_env, run.background,
-                        run.train_scene.aabb, run.cfg.shading, ctx, near=run.train_scene.near,
-                        far=run.train_scene.far, deferred=False)
+    outs = run.render(sc.cameras, index, sampler=sampler, deferred=False).as_dict()
     return outs["rgb"].cpu().numpy(), outs, time.perf_counter() - t0
 
 
@@ -445,14 +435,12 @@ def _render_parity(run, sc, split: str, out: Path, cfg: FieldExportConfig, threa
     Returns:
         (report dict, ground-truth image [3, H, W], ONNX fp32 rgb [H, W, 3] linear).
     """
-    from toolkit.pipeline import render_image
-
     rs_cfg, i = run.cfg.render_sampler, cfg.parity_index
     gt = sc.load_image(i).cpu().numpy()
     log(f"[export-onnx] rendering {split}:{i} through ONNX Runtime and torch ...")
     model = _infer.load_model(out, "fp32", threads)
     t0 = time.perf_counter()
-    onnx_out = _infer.render_view(model, _camera_of(sc, i))
+    onnx_out = _infer.render_view(model, PinholeCamera.from_cameras(sc.cameras, i))
     t_onnx = time.perf_counter() - t0
     onnx_rgb = onnx_out["rgb"]
     torch_rgb, torch_out, t_torch = _torch_render(run, sc, i, dars=False)
@@ -471,10 +459,8 @@ def _render_parity(run, sc, split: str, out: Path, cfg: FieldExportConfig, threa
     if rs_cfg.dars and run.weight_maps is not None:
         rep["psnr_torch_dars"] = _srgb_psnr(_torch_render(run, sc, i, dars=True)[0], gt)
     if run.cfg.deferred:
-        o = render_image(run.field, sc.cameras, i, replace(rs_cfg, dars=False), run.occupancy, run.l_env,
-                         run.background, run.train_scene.aabb, run.cfg.shading, None, near=run.train_scene.near,
-                         far=run.train_scene.far, deferred=True)
-        rep["psnr_torch_deferred"] = _srgb_psnr(o["rgb"].cpu().numpy(), gt)
+        o = run.render(sc.cameras, i, sampler=replace(rs_cfg, dars=False), deferred=True)
+        rep["psnr_torch_deferred"] = _srgb_psnr(o.rgb.cpu().numpy(), gt)
     log(f"[export-onnx] PSNR onnx {p_onnx:.3f} dB, torch {p_torch:.3f} dB (delta {abs(p_onnx - p_torch):.4f})")
     if not abs(p_onnx - p_torch) <= cfg.psnr_tol:
         raise OnnxParityError(f"{out}: the ONNX render of {split}:{i} has PSNR {p_onnx:.3f} dB, torch "
@@ -678,7 +664,7 @@ def _make_variant(p: str, out: Path, module, rnd, real, out_names, sc, cfg: Fiel
     if cfg.check_render and fp32_rgb is not None:
         model = _infer.load_model(out, p, threads)
         t1 = time.perf_counter()
-        rgb = _infer.render_view(model, _camera_of(sc, cfg.parity_index))["rgb"]
+        rgb = _infer.render_view(model, PinholeCamera.from_cameras(sc.cameras, cfg.parity_index))["rgb"]
         res["seconds_render"] = round(time.perf_counter() - t1, 3)
         res["psnr_vs_fp32"] = _psnr_pair(rgb, fp32_rgb)
         res["psnr_gt"] = _srgb_psnr(rgb, gt)

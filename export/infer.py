@@ -3,7 +3,8 @@
 Reads a directory written by :func:`export.field_onnx.export_onnx_models` (``field.onnx``, ``occupancy.npz``,
 ``background.npz``, ``metadata.json``, optionally ``segment.onnx`` / ``light.onnx`` and reduced-precision
 variants ``field_fp16.onnx`` / ``field_int8.onnx``) and renders novel views with numpy + ONNX Runtime. Only
-numpy, onnxruntime and (for photos) Pillow are imported: ``import export.infer`` never loads torch.
+numpy, onnxruntime and (for photos) Pillow are imported: ``import export.infer`` never loads torch. Cameras are
+:class:`toolkit.pinhole.PinholeCamera` (numpy; the viewers' camera type too).
 
 The renderer is the algorithm of :func:`toolkit.pipeline.render_image` with the run's ``render_sampler`` and
 ``deferred=False``, re-implemented in numpy with the same float32 arithmetic:
@@ -39,6 +40,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from toolkit.pinhole import PinholeCamera
+
 __all__ = ["InferError", "PinholeCamera", "FieldModel", "RenderSettings", "load_model", "render_view",
            "camera_from_transforms", "read_photo", "infer_segment", "infer_light", "FIELD_FILES", "REQUIRED_FILES"]
 
@@ -54,26 +57,6 @@ class InferError(ValueError):
 
 
 # ====================================================================== loading
-@dataclass(frozen=True)
-class PinholeCamera:
-    """One pinhole camera (SPEC: camera-to-world 4x4, OpenGL convention, metres; intrinsics in pixels).
-
-    Attributes:
-        c2w: float [4, 4] camera-to-world.
-        fx, fy: focal lengths, pixels.
-        cx, cy: principal point, pixels (pixel (u, v) has its centre at (u + 0.5, v + 0.5)).
-        width, height: image size, pixels.
-    """
-
-    c2w: np.ndarray
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-
 @dataclass(frozen=True)
 class RenderSettings:
     """Sampler of the device renderer (defaults: the exported run's ``render_sampler``, read from metadata)."""

@@ -12,18 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.io import linear_to_srgb, write_png
-
-
-def _look_at(pos, target=(0.0, 0.0, 0.0)):
-    pos = np.asarray(pos, float)
-    fwd = np.asarray(target, float) - pos
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, [0, 0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, fwd)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, up, -fwd, pos
-    return m
+from toolkit.pinhole import look_at
 
 
 def render_view(c2w, size, focal):
@@ -78,7 +67,7 @@ def make_scene(root: Path, n_train: int = 40, n_test: int = 8, size: int = 32, r
             else:
                 a = 2 * math.pi * (k + 0.5) / n
                 z = height + 0.2 * math.sin(3 * a)
-            c2w = _look_at([radius * math.cos(a), radius * math.sin(a), z])
+            c2w = look_at([radius * math.cos(a), radius * math.sin(a), z], [0.0, 0.0, 0.0])
             img, lab, metal = render_view(c2w, size, focal)
             name = f"{split}/r_{k:03d}"
             write_png(root / f"{name}.png", img)

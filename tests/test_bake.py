@@ -13,6 +13,7 @@ from toolkit.bake import (BakeConfig, UnwrapConfig, UVMesh, bake_pbr_textures, c
                           label_faces, rasterize_triangles, sample_texture, unwrap_uv)
 from toolkit.io import linear_to_srgb, read_image, srgb_to_linear
 from toolkit.mesh import Mesh, MeshConfig, extract_mesh
+from toolkit.pinhole import look_at
 from toolkit.scene import Cameras, project_points
 
 torch.set_num_threads(1)
@@ -163,18 +164,6 @@ def test_normal_map_decodes_rotated_field_normal(sphere_uv):
 
 
 # ------------------------------------------------------------------------------------------------ spot round trip
-def look_at(eye, target, up):
-    eye = np.asarray(eye, float)
-    f = np.asarray(target, float) - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = r, u, -f, eye
-    return c2w
-
-
 def render_unlit(vertices, faces, uvs, texture, c2w, size=256, focal=300.0):
     """Flat unlit rendering of a textured mesh (numpy rasteriser, z-buffer, perspective-correct UVs)."""
     t = lambda x: torch.tensor([x], dtype=torch.float64)  # noqa: E731

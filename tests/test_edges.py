@@ -382,7 +382,7 @@ def test_smoothing_of_a_line_known_value_and_renormalise():
 def test_priors_weights_python_api(tmp_path):
     from _synthetic_gallery import write_scene
 
-    from toolkit._cli_priors import priors_weights
+    from toolkit.priors import priors_weights
     from toolkit.scene import load_scene
 
     scene = load_scene(write_scene(tmp_path / "scene", n_train=2, n_test=1, size=24), "train")

@@ -13,7 +13,6 @@ from toolkit.evaluate import (JSON_SECTIONS, METRIC_KEYS, EvalConfig, choose_pat
 from toolkit.io import linear_to_srgb, srgb_to_linear
 from toolkit.metrics import (MetricUnavailable, _lpips_expected, env_light_l2, luminance, patch_masks, psnr,
                              uniform_view_indices)
-from toolkit.pipeline import render_image
 from toolkit.scene import Cameras, load_scene
 from toolkit.train import load_run, make_config, train
 
@@ -69,10 +68,8 @@ def test_every_metric_computed_when_data_supports_it(full_eval, run_dir):
     assert doc["psnr"] == pytest.approx(np.mean([r["psnr"] for r in doc["per_view"]]))
     run = load_run(run_dir)
     sc = load_scene(run.scene_path, "test")
-    o = render_image(run.field, sc.cameras, 3, run.cfg.render_sampler, run.occupancy, run.l_env, run.background,
-                     run.train_scene.aabb, run.cfg.shading, run.dars_for(sc.cameras.c2w[3]), near=run.train_scene.near,
-                     far=run.train_scene.far, deferred=run.cfg.deferred)
-    own = float(psnr(linear_to_srgb(o["rgb"].clamp(0, 1)).permute(2, 0, 1), sc.load_image(3)))
+    o = run.render(sc.cameras, 3)  # the run's own settings, as dars eval renders
+    own = float(psnr(linear_to_srgb(o.rgb.clamp(0, 1)).permute(2, 0, 1), sc.load_image(3)))
     assert doc["per_view"][3]["psnr"] == pytest.approx(own, abs=1e-4)
     assert doc["env_light_l2"] == pytest.approx(float(env_light_l2(run.l_env, torch.tensor(GT_SH))), rel=1e-5)
     assert 0.0 <= doc["miou"] <= 1.0 and 0.0 <= doc["normal_mae"] <= 180.0
@@ -233,7 +230,7 @@ def test_chamfer_against_reference_mesh(run_dir, tmp_path):
 def test_chamfer_of_an_analytic_sphere_is_small(run_dir, tmp_path, monkeypatch):
     import trimesh
 
-    import toolkit.train as T
+    import toolkit.train.run as T
     from toolkit.evaluate import chamfer_to_reference
 
     ref = tmp_path / "sphere.ply"

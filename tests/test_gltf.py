@@ -5,8 +5,6 @@ import json
 import math
 import shutil
 import subprocess
-import sys
-import types
 from pathlib import Path
 
 import numpy as np
@@ -258,6 +256,7 @@ def test_geometry_exports(tmp_path):
 
 # ------------------------------------------------------------------------------------------------ CLI
 def _ring_cameras(n=8, dist=2.5, size=48, focal=50.0):
+    from toolkit.pinhole import look_at
     from toolkit.scene import Cameras
 
     c2ws = []
@@ -265,13 +264,7 @@ def _ring_cameras(n=8, dist=2.5, size=48, focal=50.0):
         a = 2 * math.pi * k / n
         el = 0.6 * math.sin(2 * a)
         eye = dist * np.array([math.cos(a) * math.cos(el), math.sin(a) * math.cos(el), math.sin(el)])
-        f = -eye / np.linalg.norm(eye)
-        r = np.cross(f, [0, 0, 1.0])
-        r /= np.linalg.norm(r)
-        u = np.cross(r, f)
-        c2w = np.eye(4)
-        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = r, u, -f, eye
-        c2ws.append(c2w)
+        c2ws.append(look_at(eye, [0.0, 0.0, 0.0]))
     full = lambda v: torch.full((n,), float(v))  # noqa: E731
     return Cameras(torch.tensor(np.stack(c2ws), dtype=torch.float32), full(focal), full(focal), full(size / 2),
                    full(size / 2), full(size), full(size))
@@ -279,17 +272,16 @@ def _ring_cameras(n=8, dist=2.5, size=48, focal=50.0):
 
 @pytest.fixture
 def fake_field(monkeypatch):
-    """A stand-in for toolkit.field.load_field_callables: a sphere with a colourful material."""
-    mod = types.ModuleType("toolkit.field")
+    """A stand-in for toolkit.train.run.load_field_callables: a sphere with a colourful material."""
+    import toolkit.train.run
 
     def load_field_callables(run_dir):
         density = lambda p: 1e3 * torch.sigmoid((0.5 - p.norm(dim=-1)) * 400)  # noqa: E731  (opaque at r ≈ 0.51)
         aabb = torch.tensor([[-1.0] * 3, [1.0] * 3])
         return density, material_fn, aabb, torch.as_tensor(SH), _ring_cameras()
 
-    mod.load_field_callables = load_field_callables
-    monkeypatch.setitem(sys.modules, "toolkit.field", mod)
-    return mod
+    monkeypatch.setattr(toolkit.train.run, "load_field_callables", load_field_callables)
+    return load_field_callables
 
 
 def test_cli_export_asset_end_to_end(fake_field, tmp_path, capsys):
@@ -322,9 +314,10 @@ def test_cli_export_asset_end_to_end(fake_field, tmp_path, capsys):
 def test_cli_errors_are_clear(monkeypatch, tmp_path, capsys):
     from toolkit.cli import main
 
-    monkeypatch.setitem(sys.modules, "toolkit.field", types.ModuleType("toolkit.field"))  # no loader yet
-    (tmp_path / "run").mkdir()
+    (tmp_path / "run").mkdir()  # a directory, but not a training run
     assert main(["export-asset", str(tmp_path / "run"), "--out", str(tmp_path / "o")]) == 2
-    assert "load_field_callables" in capsys.readouterr().err
+    assert "is not a training run" in capsys.readouterr().err
+    assert main(["export-asset", str(tmp_path / "run"), "--out", str(tmp_path / "o"), "--texture", "3"]) == 2
+    assert "--texture 3 must be ≥ 16" in capsys.readouterr().err  # checked before the run is loaded
     assert main(["mesh", str(tmp_path / "nope")]) == 2
     assert "RUN directory not found" in capsys.readouterr().err

@@ -12,6 +12,7 @@ from toolkit._checks import ConfigError, DarsError, ShapeError
 from toolkit.mesh import (DepthRenderConfig, Mesh, MeshConfig, SimplifyConfig, TsdfConfig, extract_mesh, fuse_tsdf,
                           load_mesh, mesh_distance, opacity_level, opengl_c2w_to_opencv_w2c, remove_floaters,
                           remove_unseen_faces, render_depth, save_mesh, simplify_mesh)
+from toolkit.pinhole import look_at
 from toolkit.scene import Cameras, generate_rays
 
 torch.set_num_threads(1)
@@ -33,19 +34,6 @@ def edges_shared_twice(mesh: Mesh) -> bool:
     e = np.sort(np.concatenate([mesh.faces[:, [0, 1]], mesh.faces[:, [1, 2]], mesh.faces[:, [2, 0]]]), axis=1)
     _, counts = np.unique(e, axis=0, return_counts=True)
     return bool((counts == 2).all())
-
-
-def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenGL camera-to-world looking from ``eye`` at ``target``."""
-    eye = np.asarray(eye, float)
-    f = np.asarray(target, float) - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = r, u, -f, eye
-    return c2w
 
 
 def make_cameras(c2ws, size=64, focal=60.0, cx=None, cy=None) -> Cameras:
@@ -314,7 +302,7 @@ def test_remove_floaters():
 
 def test_remove_unseen_faces():
     mesh = extract_mesh(sphere_density(0.5, beta=0.02), BOX, MeshConfig(resolution=40, progress=False))
-    cams = make_cameras([look_at([0.0, -3.0, 0.0])], size=64, focal=80.0)
+    cams = make_cameras([look_at([0.0, -3.0, 0.0], [0.0, 0.0, 0.0])], size=64, focal=80.0)
     # without depths: everything projecting into the image counts as seen (the sphere fits in the view)
     assert remove_unseen_faces(mesh, cams).num_faces == mesh.num_faces
     # with depths: the back half is occluded

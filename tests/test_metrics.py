@@ -34,6 +34,7 @@ from toolkit.metrics import (
     uniform_view_indices,
     view_consistency,
 )
+from toolkit.pinhole import look_at
 from toolkit.scene import Cameras, generate_rays
 
 VENV_BIN = Path(sys.executable).parent
@@ -449,23 +450,15 @@ def test_uniform_view_indices():
         uniform_view_indices(8, 10)
 
 
+def _c2w(eye, target):
+    return torch.from_numpy(look_at(eye, target))  # float64 [4, 4]
+
+
 def _cameras(c2ws, f=100.0, size=64):
     k = len(c2ws)
     return Cameras(torch.stack(c2ws).double(), torch.full((k,), f, dtype=torch.float64),
                    torch.full((k,), f, dtype=torch.float64), torch.full((k,), size / 2, dtype=torch.float64),
                    torch.full((k,), size / 2, dtype=torch.float64), torch.full((k,), size), torch.full((k,), size))
-
-
-def _look_at(eye, target, up=(0.0, 0.0, 1.0)):
-    eye, target, up = (torch.tensor(v, dtype=torch.float64) for v in (eye, target, up))
-    back = eye - target
-    back = back / back.norm()
-    right = torch.linalg.cross(up, back)
-    right = right / right.norm()
-    cam_up = torch.linalg.cross(back, right)
-    c2w = torch.eye(4, dtype=torch.float64)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, cam_up, back, eye
-    return c2w
 
 
 def _raycast_patch(cams, i, centre, normal, size):
@@ -485,7 +478,7 @@ def _raycast_patch(cams, i, centre, normal, size):
 
 def test_patch_masks_facing_square_and_occlusion():
     centre, normal, size = (0.0, 0.0, 0.0), (0.0, -1.0, 0.0), 0.4  # a wall patch facing -y
-    front = _look_at((0.0, -2.0, 0.0), (0.0, 0.0, 0.0))
+    front = _c2w((0.0, -2.0, 0.0), (0.0, 0.0, 0.0))
     cams = _cameras([front])
     m = patch_masks(cams, [0], centre, normal, size)
     assert m.shape == (1, 64, 64) and m.dtype == torch.bool
@@ -501,8 +494,8 @@ def test_patch_masks_facing_square_and_occlusion():
     occ = patch_masks(cams, [0], centre, normal, size, depths=depth)
     assert int(occ.sum()) == 200 and not bool(occ[0, :, :32].any())
     # seen from behind, or the patch behind the camera: empty
-    back = _look_at((0.0, 2.0, 0.0), (0.0, 0.0, 0.0))
-    away = _look_at((0.0, -2.0, 0.0), (0.0, -5.0, 0.0))
+    back = _c2w((0.0, 2.0, 0.0), (0.0, 0.0, 0.0))
+    away = _c2w((0.0, -2.0, 0.0), (0.0, -5.0, 0.0))
     both = patch_masks(_cameras([back, away]), [0, 1], centre, normal, size)
     assert int(both.sum()) == 0
     assert int(patch_masks(_cameras([back]), [0], centre, normal, size, cull_backfacing=False).sum()) == 400
@@ -512,7 +505,7 @@ def test_patch_masks_oblique_views_match_raycast_and_cv2():
     import cv2
 
     centre, normal, size = (0.3, 0.0, 1.2), (0.0, -1.0, 0.0), 0.5
-    c2ws = [_look_at((x, -2.5, 1.5), (0.0, 0.0, 1.2)) for x in (-1.5, 0.0, 1.0)]
+    c2ws = [_c2w((x, -2.5, 1.5), (0.0, 0.0, 1.2)) for x in (-1.5, 0.0, 1.0)]
     cams = _cameras(c2ws, f=60.0, size=64)
     masks = patch_masks(cams, [0, 1, 2], centre, normal, size)
     for k in range(3):
@@ -540,7 +533,7 @@ def test_patch_masks_oblique_views_match_raycast_and_cv2():
 
 
 def test_patch_masks_errors():
-    cams = _cameras([_look_at((0.0, -2.0, 0.0), (0.0, 0.0, 0.0))])
+    cams = _cameras([_c2w((0.0, -2.0, 0.0), (0.0, 0.0, 0.0))])
     with pytest.raises(ShapeError, match=r"centre: expected shape \[3\], got \[2\]"):
         patch_masks(cams, [0], (0.0, 0.0), (0.0, -1.0, 0.0), 0.4)
     with pytest.raises(DarsError, match="size=-1"):

@@ -6,7 +6,7 @@ import torch
 from synthetic import make_scene
 from toolkit._checks import ConfigError
 from toolkit.field import FieldOutputs
-from toolkit.pipeline import render_image
+from toolkit.pipeline import RenderConfig, RenderInputs, render_image
 from toolkit.relight import MaterialEdit, apply_material_edits, parse_material_edit, relight_hook
 from toolkit.scene import load_scene
 from toolkit.train import load_run, make_config, train
@@ -61,12 +61,13 @@ def tiny_run(tmp_path_factory):
 def test_doubling_the_light_doubles_linear_radiance(tiny_run):
     run = load_run(tiny_run)
     sc = load_scene(run.scene_path, "test")
-    args = (run.field, sc.cameras, 0, run.cfg.render_sampler, run.occupancy, run.l_env, run.background, sc.aabb, "pbr")
+    args = (run.field, sc.cameras, 0, RenderConfig(sampler=run.cfg.render_sampler, shading="pbr", deferred=True),
+            RenderInputs(run.occupancy, run.l_env, run.background, sc.aabb))
     base = render_image(*args)
     two = render_image(*args, outputs_hook=relight_hook(run.l_env, 2 * run.l_env, residual="scale"))
-    op = base["opacity"]
-    lit = base["rgb"] - (1 - op)[..., None] * run.background(torch.tensor([[0.0, 0, 1.0]]))[0]
-    lit2 = two["rgb"] - (1 - op)[..., None] * run.background(torch.tensor([[0.0, 0, 1.0]]))[0]
+    op = base.opacity
+    lit = base.rgb - (1 - op)[..., None] * run.background(torch.tensor([[0.0, 0, 1.0]]))[0]
+    lit2 = two.rgb - (1 - op)[..., None] * run.background(torch.tensor([[0.0, 0, 1.0]]))[0]
     sel = op > 0.05  # linearity holds at any opacity: the lit part is sum_i w_i c_i
     assert sel.any()
     assert torch.allclose(lit2[sel], 2 * lit[sel], rtol=1e-3, atol=1e-4)

@@ -7,6 +7,7 @@ from toolkit._checks import ConfigError
 from toolkit.sampling import (OccupancyGrid, SamplerConfig, average_other_view_weights, build_ray_sampler,
                               merge_samples, neighbour_views, ray_budgets, sample_fine, select_rays,
                               stratified_edges)
+from toolkit.pinhole import look_at
 from toolkit.scene import Cameras, generate_rays
 
 
@@ -101,13 +102,7 @@ def _ring_cameras(n=6, size=20):
     c2ws = []
     for k in range(n):
         a = 2 * np.pi * k / n
-        pos = np.array([3 * np.cos(a), 3 * np.sin(a), 0.0])
-        fwd = -pos / np.linalg.norm(pos)
-        right = np.cross(fwd, [0, 0, 1.0])
-        up = np.cross(right, fwd)
-        m = np.eye(4)
-        m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, up, -fwd, pos
-        c2ws.append(m)
+        c2ws.append(look_at([3 * np.cos(a), 3 * np.sin(a), 0.0], [0.0, 0.0, 0.0]))
     t = lambda v: torch.full((n,), float(v))  # noqa: E731
     return Cameras(torch.tensor(np.stack(c2ws), dtype=torch.float32), t(20), t(20), t(size / 2), t(size / 2),
                    torch.full((n,), size), torch.full((n,), size))

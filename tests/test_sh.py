@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import shutil
@@ -407,11 +406,9 @@ def test_read_envmap_errors_name_the_file(tmp_path):
 
 # ---------------------------------------------------------------------------------------------------------------- CLI
 def _cli(argv):
-    from toolkit import _cli_sh
+    from toolkit.cli import build_parser
 
-    parser = argparse.ArgumentParser(prog="dars priors")
-    _cli_sh.add_parser(parser.add_subparsers(dest="cmd"))
-    args = parser.parse_args(["sh-probe", *argv])
+    args = build_parser().parse_args(["priors", "sh-probe", *argv])
     return args.func(args)
 
 

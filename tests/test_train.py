@@ -7,7 +7,7 @@ from synthetic import make_scene
 from toolkit._checks import ConfigError, DarsError
 from toolkit.io import linear_to_srgb
 from toolkit.metrics import psnr
-from toolkit.pipeline import render_image
+from toolkit.pipeline import RenderConfig, RenderInputs, render_image
 from toolkit.scene import load_scene
 from toolkit.train import TrainingDiverged, load_run, make_config, train
 
@@ -29,9 +29,11 @@ def _test_psnr(run_dir):
     sc = load_scene(run.scene_path, "test")
     vals = []
     for i in range(len(sc)):
-        o = render_image(run.field, sc.cameras, i, run.cfg.render_sampler, run.occupancy, run.l_env, run.background,
-                         sc.aabb, run.cfg.shading, run.dars_for(sc.cameras.c2w[i]))
-        vals.append(float(psnr(linear_to_srgb(o["rgb"].clamp(0, 1)).permute(2, 0, 1), sc.load_image(i))))
+        o = render_image(run.field, sc.cameras, i,
+                         RenderConfig(sampler=run.cfg.render_sampler, shading=run.cfg.shading, deferred=True),
+                         RenderInputs(run.occupancy, run.l_env, run.background, sc.aabb,
+                                      run.dars_for(sc.cameras.c2w[i])))
+        vals.append(float(psnr(linear_to_srgb(o.rgb.clamp(0, 1)).permute(2, 0, 1), sc.load_image(i))))
     return sum(vals) / len(vals)
 
 
@@ -92,7 +94,7 @@ def test_existing_run_not_overwritten_and_length_required(tiny, tmp_path):
 
 
 def test_nan_guard_keeps_last_good_checkpoint(tiny, tmp_path, monkeypatch):
-    import toolkit.train as T
+    import toolkit.train.step as T
 
     real = T.rgb_l1
     calls = {"n": 0}
@@ -113,7 +115,7 @@ def test_nan_guard_keeps_last_good_checkpoint(tiny, tmp_path, monkeypatch):
 def test_non_finite_gradients_are_skipped_then_stop_the_run(tiny, tmp_path, monkeypatch):
     """A finite loss with NaN gradients: the step is skipped (parameters untouched); MAX_BAD_STEPS in a row stop the
     run with a clear message and the last good checkpoint."""
-    import toolkit.train as T
+    import toolkit.train.step as T
 
     class NanGrad(torch.autograd.Function):
         @staticmethod

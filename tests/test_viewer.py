@@ -21,7 +21,7 @@ from _viewer_assets import (CUBE_ALBEDO, CUBE_FACES, CUBE_METALLIC, CUBE_ROUGHNE
 from export.gltf import load_glb
 from toolkit._checks import ConfigError, DarsError, SceneError
 from toolkit.io import linear_to_srgb, read_image, write_png
-from toolkit.preview import LABEL_COLOURS
+from toolkit.visualise import LABEL_COLOURS
 from toolkit.scene import Cameras, generate_rays
 from toolkit.shading import SPEC_BAND_G1, SPEC_BAND_G2, ShadingConfig, dfg_table, shade_pbr
 from toolkit.sh import sh_to_gltf_ibl
@@ -55,13 +55,13 @@ def flat_cube_glb(tmp_path_factory):
 
 
 def _cam(eye, target=(0, 0, 0), w=160, h=120, f=150.0):
-    from viewers.camera import ViewCamera, look_at
+    from toolkit.pinhole import PinholeCamera, look_at
 
-    return ViewCamera(look_at(eye, target), f, f * 1.02, w / 2 + 3.5, h / 2 - 2.0, w, h)
+    return PinholeCamera(look_at(eye, target), f, f * 1.02, w / 2 + 3.5, h / 2 - 2.0, w, h)
 
 
 def _rays(cam):
-    """World rays (float64) through every pixel centre of a ViewCamera, via toolkit.scene.generate_rays."""
+    """World rays (float64) through every pixel centre of a PinholeCamera, via toolkit.scene.generate_rays."""
     c = Cameras(torch.tensor(cam.c2w, dtype=torch.float32)[None], torch.tensor([cam.fx]), torch.tensor([cam.fy]),
                 torch.tensor([cam.cx]), torch.tensor([cam.cy]), torch.tensor([cam.width]), torch.tensor([cam.height]))
     r = generate_rays(c, [0])
@@ -143,11 +143,12 @@ def test_eval_glsl_shading_checks_shapes(gl):
 def test_projection_matches_generate_rays():
     """A point on the ray through pixel (u, v) projects to window coordinates (u + ½, v + ½) (row 0 at the top)."""
     from export.gltf import world_to_gltf
+    from viewers.camera import view_projection_gltf
 
     cam = _cam([1.3, -2.1, 0.9], w=64, h=48)
     o, d = _rays(cam)
     pts = o + d * np.linspace(0.5, 5.0, len(d))[:, None]
-    clip = cam.view_projection_gltf() @ np.concatenate([world_to_gltf(pts), np.ones((len(pts), 1))], 1).T
+    clip = view_projection_gltf(cam) @ np.concatenate([world_to_gltf(pts), np.ones((len(pts), 1))], 1).T
     ndc = clip[:3] / clip[3]
     px = (ndc[0] + 1) / 2 * cam.width
     py = (1 - ndc[1]) / 2 * cam.height
@@ -159,7 +160,8 @@ def test_projection_matches_generate_rays():
 
 def test_camera_spec_and_errors(sample_scene_path):
     from toolkit.scene import load_scene
-    from viewers.camera import ViewCamera, camera_from_spec
+    from toolkit.pinhole import PinholeCamera
+    from viewers.camera import camera_from_spec
 
     cam = camera_from_spec(f"{sample_scene_path}:test:2")
     sc = load_scene(sample_scene_path, "test")
@@ -172,7 +174,7 @@ def test_camera_spec_and_errors(sample_scene_path):
     with pytest.raises(DarsError, match="out of range"):
         camera_from_spec(f"{sample_scene_path}:test:999")
     with pytest.raises(ConfigError, match="near"):
-        ViewCamera(np.eye(4), 1, 1, 0, 0, 4, 4, near=2.0, far=1.0)
+        PinholeCamera(np.eye(4), 1, 1, 0, 0, 4, 4, near=2.0, far=1.0)
 
 
 def test_orbit_and_walk_controllers_reproduce_the_camera():
@@ -331,7 +333,8 @@ def test_golden_cube(gl, cube_glb, mode):
 
 # ========================================================================================================= relighting
 def test_relighting_swaps_the_sh(gl, cube_glb, tmp_path):
-    from viewers.lighting import DEFAULT_SH, load_sh_json, resolve_sh, sh_from_probe
+    from toolkit.sh import read_sh_json
+    from viewers.lighting import DEFAULT_SH, resolve_sh, sh_from_probe
     from viewers.preview import OffscreenPreview, PreviewConfig
 
     cam = _cam([1.4, -2.2, 1.3])
@@ -339,7 +342,7 @@ def test_relighting_swaps_the_sh(gl, cube_glb, tmp_path):
     with OffscreenPreview(asset, ctx=gl) as view:
         base = view.render(cam).image
         (tmp_path / "same.json").write_text(json.dumps({"coeffs": CUBE_SH.tolist()}))
-        view.renderer.set_sh(load_sh_json(tmp_path / "same.json"))
+        view.renderer.set_sh(read_sh_json(tmp_path / "same.json"))
         assert np.array_equal(view.render(cam).image, base), "the asset's SH through JSON must give the same image"
         view.renderer.set_sh(DEFAULT_SH)  # uniform white radiance 1: diffuse = albedo, the lit image = the albedo
         cfg = PreviewConfig(shading=ShadingConfig(specular=False))
@@ -373,20 +376,20 @@ def test_sh_from_gltf_ibl_inverts_the_exporter():
 
 
 def test_load_sh_json_forms_and_errors(tmp_path):
-    from viewers.lighting import load_sh_json
+    from toolkit.sh import read_sh_json
 
     sh = RNG.normal(size=(9, 3))
     for i, obj in enumerate(({"coeffs": sh.tolist()}, {"sh": sh.tolist()}, sh.reshape(-1).tolist())):
         (tmp_path / f"{i}.json").write_text(json.dumps(obj))
-        np.testing.assert_allclose(load_sh_json(tmp_path / f"{i}.json"), sh)
+        np.testing.assert_allclose(read_sh_json(tmp_path / f"{i}.json"), sh)
     (tmp_path / "bad.json").write_text(json.dumps({"coeffs": [[1, 2, 3]] * 8}))
     with pytest.raises(DarsError, match="9 x"):
-        load_sh_json(tmp_path / "bad.json")
+        read_sh_json(tmp_path / "bad.json")
     (tmp_path / "nokey.json").write_text(json.dumps({"light": 1}))
     with pytest.raises(SceneError, match="coeffs"):
-        load_sh_json(tmp_path / "nokey.json")
+        read_sh_json(tmp_path / "nokey.json")
     with pytest.raises(SceneError, match="not found"):
-        load_sh_json(tmp_path / "missing.json")
+        read_sh_json(tmp_path / "missing.json")
 
 
 # ============================================================================================================= window
@@ -534,10 +537,9 @@ def test_baked_sample_matches_the_field_render(tmp_path_factory, gl):
     measures any run). Asserted floors: lit ≥ 15 dB, albedo ≥ 24 dB.
     """
     from toolkit.metrics import psnr
-    from toolkit.pipeline import render_image
-    from toolkit.scene import load_scene
+    from toolkit.pinhole import PinholeCamera
     from toolkit.train import load_run
-    from viewers.camera import ViewCamera
+    from toolkit.scene import load_scene
     from viewers.preview import OffscreenPreview, PreviewConfig
 
     run_dir, asset_dir = trained_sample(tmp_path_factory.mktemp("sample"))
@@ -548,10 +550,8 @@ def test_baked_sample_matches_the_field_render(tmp_path_factory, gl):
     with OffscreenPreview(asset_dir, ctx=gl) as view:
         for i in (0, 7, 14):
             with torch.no_grad():
-                o = render_image(run.field, scene.cameras, i, run.cfg.render_sampler, run.occupancy, run.l_env,
-                                 run.background, scene.aabb, run.cfg.shading, run.dars_for(scene.cameras.c2w[i]),
-                                 near=scene.near, far=scene.far)
-            cam = ViewCamera.from_cameras(scene.cameras, i, near=extent * 1e-3, far=extent * 10)
+                o = run.render(scene.cameras, i, deferred=True).as_dict()
+            cam = PinholeCamera.from_cameras(scene.cameras, i, near=extent * 1e-3, far=extent * 10)
             lit, alb = view.render(cam), view.render(cam, PreviewConfig(mode="albedo"))
             mask = torch.from_numpy(lit.mask) & (o["opacity"] > 0.5)
             assert mask.float().mean() > 0.1, f"view {i}: the mesh covers only {mask.float().mean():.1%} of the image"

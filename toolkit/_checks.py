@@ -2,17 +2,22 @@
 
 Every check raises a :class:`DarsError` subclass (never ``assert``: ``python -O`` strips those) with a
 message that names the file, frame and value that is wrong and says what to do about it.
+
+Importing this module loads neither torch nor numpy (the command line's ``--help`` imports it): both are
+imported inside the checks that need them.
 """
 
 from __future__ import annotations
 
 import math
 import re
+import sys
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
-import numpy as np
-import torch
+if TYPE_CHECKING:
+    import numpy as np
+    import torch
 
 
 class DarsError(ValueError):
@@ -75,7 +80,11 @@ def check_shape(x: torch.Tensor | np.ndarray, spec: str, name: str = "tensor") -
 
 def check_finite(x: torch.Tensor | np.ndarray, name: str) -> None:
     """Raise :class:`DarsError` if ``x`` contains NaN or inf."""
-    ok = bool(torch.isfinite(x).all()) if isinstance(x, torch.Tensor) else bool(np.isfinite(x).all())
+    import numpy as np
+
+    torch = sys.modules.get("torch")  # a tensor implies torch is loaded; never import it for a numpy array
+    is_tensor = torch is not None and isinstance(x, torch.Tensor)
+    ok = bool(torch.isfinite(x).all()) if is_tensor else bool(np.isfinite(x).all())
     if not ok:
         raise DarsError(f"{name} contains NaN or inf values")
 
@@ -106,6 +115,8 @@ def check_rigid_pose(c2w: np.ndarray, where: str, tol: float = 1e-3) -> None:
     Raises:
         SceneError: naming ``where`` (file and frame) and the offending value.
     """
+    import numpy as np
+
     c2w = np.asarray(c2w, dtype=np.float64)
     if c2w.shape not in ((4, 4), (3, 4)):
         raise SceneError(f"{where}: transform_matrix must be 4x4 (or 3x4), got shape {list(c2w.shape)}")

@@ -18,10 +18,12 @@ import sys
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 from ._checks import ConfigError, DarsError
-from .evaluate import METRIC_KEYS, EvalConfig, EvalResult, evaluate_run, variant_of
+
+if TYPE_CHECKING:
+    from .evaluate import EvalConfig, EvalResult
 
 __all__ = ["VARIANTS", "VARIANT_LABELS", "VariantResult", "AblationResult", "run_ablation"]
 
@@ -73,6 +75,8 @@ class AblationResult:
 
     def to_json(self) -> dict:
         """The ``ablation.json`` document."""
+        from .evaluate import METRIC_KEYS
+
         full = next((v for v in self.variants if v.name == "full"), None)
         full_doc = full.evaluation.to_json() if full is not None else {}
         items = []
@@ -116,7 +120,7 @@ def run_ablation(
     seed: int = 0,
     variants: Sequence[str] | None = None,
     overrides: dict | None = None,
-    eval_cfg: EvalConfig = EvalConfig(),
+    eval_cfg: EvalConfig | None = None,
     split: str = "test",
     progress_bar: bool = False,
     log: Callable[[str], None] | None = None,
@@ -147,8 +151,10 @@ def run_ablation(
         ConfigError: no budget or both budgets, unknown variant, or an override that is an ablation switch.
         DarsError: a variant directory holds a run with another configuration.
     """
-    from .report import write_ablation_report
-    from .train import load_run, make_config, train
+    from .evaluate import EvalConfig, evaluate_run, variant_of
+    from .report import write_ablation_report, write_eval_report
+    from .train.run import load_run
+    from .train import TrainConfig, make_config, train
 
     log = log or (lambda m: print(m, file=sys.stderr))
     if bool(steps) == bool(minutes):
@@ -176,7 +182,7 @@ def run_ablation(
     result = AblationResult(scene=str(scene), out_dir=out, preset=preset, steps=int(steps), minutes=float(minutes),
                             seed=int(seed), split=split, overrides=overrides)
     budget = f"{steps} steps" if steps else f"{minutes:g} min"
-    ecfg = eval_cfg
+    ecfg = EvalConfig() if eval_cfg is None else eval_cfg
     for k, name in enumerate(names, 1):
         label = VARIANT_LABELS[name]
         run_dir = out / name
@@ -185,8 +191,6 @@ def run_ablation(
         saved = _saved_config(run_dir)
         reused = saved is not None
         if saved is not None:
-            from .train import TrainConfig
-
             old = TrainConfig.from_dict(saved)
             mismatch = [f for f, a, b in (("variant", variant_of(old), name), ("preset", old.preset, preset),
                                            ("steps", old.steps, int(steps)), ("minutes", old.minutes, float(minutes)),
@@ -208,8 +212,6 @@ def run_ablation(
             p = vc["patch"]  # the next variants measure the same automatically chosen patch
             ecfg = replace(ecfg, patch_centre=tuple(p["centre"]), patch_normal=tuple(p["normal"]), patch_size=p["size"],
                            patch_source=f"{p['source']} (chosen for the {label} variant, shared by all)")
-        from .report import write_eval_report
-
         write_eval_report(ev, run_dir / "eval")
         result.variants.append(VariantResult(name, label, run_dir, ev, reused, time.monotonic() - t0))
         m = ev.metrics

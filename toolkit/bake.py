@@ -26,12 +26,14 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, replace
+from dataclasses import field as dc_field
 from typing import Literal, Mapping
 
 import numpy as np
 
 from ._checks import ConfigError, DarsError, ShapeError, check_shape
-from .mesh import Mesh, MaterialFn, _call_field, _progress, _to_numpy, compute_vertex_normals
+from .mesh import MaterialFn, Mesh, compute_vertex_normals
+from .mesh._field import _call_field, _progress, _to_numpy
 
 __all__ = [
     "UVMesh",
@@ -54,9 +56,12 @@ dielectric. A missing ``normal`` bakes the flat map (0.5, 0.5, 1) (the interpola
 
 
 # ============================================================================================================ UVMesh
-@dataclass(frozen=True)
-class UVMesh:
-    """A mesh with a UV atlas (vertices split along chart seams).
+@dataclass(frozen=True, init=False)
+class UVMesh(Mesh):
+    """A :class:`~toolkit.mesh.Mesh` with a UV atlas (vertices split along chart seams).
+
+    Constructed as ``UVMesh(vertices, faces, uvs, normals, tangents, vmapping, face_labels=None)``; the mesh's
+    ``colors`` and ``labels`` are None (labels are per face here).
 
     Attributes:
         vertices: float32 [V, 3] world positions, metres (+z up).
@@ -68,30 +73,29 @@ class UVMesh:
         face_labels: uint8 [F] semantic class per face (0-6, 255 unlabelled), or None.
     """
 
-    vertices: np.ndarray
-    faces: np.ndarray
-    uvs: np.ndarray
-    normals: np.ndarray
-    tangents: np.ndarray
-    vmapping: np.ndarray
+    colors: None = dc_field(default=None, init=False, repr=False)
+    labels: None = dc_field(default=None, init=False, repr=False)
+    uvs: np.ndarray = None
+    tangents: np.ndarray = None
+    vmapping: np.ndarray = None
     face_labels: np.ndarray | None = None
 
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, normals: np.ndarray,
+                 tangents: np.ndarray, vmapping: np.ndarray, face_labels: np.ndarray | None = None):
+        for name, value in (("vertices", vertices), ("faces", faces), ("normals", normals), ("colors", None),
+                            ("labels", None), ("uvs", uvs), ("tangents", tangents), ("vmapping", vmapping),
+                            ("face_labels", face_labels)):
+            object.__setattr__(self, name, value)
+        self.__post_init__()
+
     def __post_init__(self) -> None:
-        dims = check_shape(self.vertices, "V 3", "UVMesh.vertices")
-        check_shape(self.faces, "F 3", "UVMesh.faces")
-        v = dims["V"]
-        for name, spec in (("uvs", f"{v} 2"), ("normals", f"{v} 3"), ("tangents", f"{v} 4"), ("vmapping", f"{v}")):
+        super().__post_init__()  # vertices, faces, normals
+        v = self.num_vertices
+        check_shape(self.normals, f"{v} 3", "UVMesh.normals")  # required here
+        for name, spec in (("uvs", f"{v} 2"), ("tangents", f"{v} 4"), ("vmapping", f"{v}")):
             check_shape(getattr(self, name), spec, f"UVMesh.{name}")
         if self.face_labels is not None:
-            check_shape(self.face_labels, f"{self.faces.shape[0]}", "UVMesh.face_labels")
-
-    @property
-    def num_vertices(self) -> int:
-        return int(self.vertices.shape[0])
-
-    @property
-    def num_faces(self) -> int:
-        return int(self.faces.shape[0])
+            check_shape(self.face_labels, f"{self.num_faces}", "UVMesh.face_labels")
 
     def to_mesh(self) -> Mesh:
         """Geometry only (split vertices kept)."""

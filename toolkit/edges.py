@@ -380,7 +380,7 @@ def weight_overlay(image: torch.Tensor | np.ndarray, weights: torch.Tensor | np.
     Returns:
         float H-W-3 in [0, 1].
     """
-    from .preview import colourise_scalar
+    from .visualise import colourise_scalar
 
     img = np.asarray(image.detach().cpu() if isinstance(image, torch.Tensor) else image, dtype=np.float32)
     if img.ndim == 3 and img.shape[0] == 3 and img.shape[-1] != 3:

@@ -273,12 +273,8 @@ def _device_of(run) -> torch.device:
 
 
 def _render_view(run, cameras: Cameras, i: int, chunk: int) -> dict[str, torch.Tensor]:
-    from .pipeline import render_image
-
-    out = render_image(run.field, cameras, i, run.cfg.render_sampler, run.occupancy, run.l_env, run.background,
-                       run.train_scene.aabb.to(cameras.device), run.cfg.shading, run.dars_for(cameras.c2w[i]),
-                       chunk=chunk, near=run.train_scene.near, far=run.train_scene.far, deferred=run.cfg.deferred)
-    return {k: v.detach().float().cpu() for k, v in out.items()}
+    out = run.render(cameras, i, chunk=chunk)
+    return {k: v.detach().float().cpu() for k, v in out.as_dict().items()}
 
 
 @torch.no_grad()
@@ -295,7 +291,7 @@ def training_sample_counts(run, index: int, chunk: int | None = None) -> dict[st
         ``{"samples": float [H, W] samples per ray (occupied coarse + fine), "fine": float [H, W] fine samples per
         ray (the budget)}``, CPU.
     """
-    from .pipeline import DarsContext, render_rays
+    from .pipeline import DarsContext, RenderConfig, RenderInputs, render_rays
     from .sampling import neighbour_views
     from .scene import generate_rays
 
@@ -317,8 +313,9 @@ def training_sample_counts(run, index: int, chunk: int | None = None) -> dict[st
     total, fine = [], []
     for s in range(0, len(rays), chunk):
         sub = rays[s:s + chunk]
-        out = render_rays(run.field, sub, sampler, run.occupancy, run.l_env, run.background, run.cfg.shading, dars,
-                          None if ray_w is None else ray_w[s:s + chunk], deferred=True)
+        out = render_rays(run.field, sub, RenderConfig(sampler=sampler, shading=run.cfg.shading, deferred=True),
+                          RenderInputs(run.occupancy, run.l_env, run.background, dars=dars),
+                          None if ray_w is None else ray_w[s:s + chunk])
         total.append(out.samples_per_ray.float().cpu())
         fine.append(out.fine_counts.float().cpu())
     return {"samples": torch.cat(total).reshape(h, w), "fine": torch.cat(fine).reshape(h, w)}
@@ -394,7 +391,7 @@ def chamfer_to_reference(run, reference_mesh: str | Path, resolution: int = 128,
         ``{"value": None, "reason": ...}`` when the field has no surface at the opacity level.
     """
     from .mesh import MeshConfig, extract_mesh, load_mesh, mesh_distance
-    from .train import field_callables
+    from .train.run import field_callables
 
     ref = load_mesh(reference_mesh)
     density_fn, _ = field_callables(run)
@@ -459,7 +456,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     """
     from tqdm import tqdm
 
-    from .train import Run
+    from .train.run import Run
 
     log = log or (lambda m: print(m, file=sys.stderr))
     if not isinstance(run, Run):
@@ -705,7 +702,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
 
 
 def _display_maps(out: dict[str, torch.Tensor], srgb: bool) -> dict[str, np.ndarray]:
-    from .preview import render_output_images
+    from .visualise import render_output_images
 
     keep = {k: v for k, v in out.items() if k in ("rgb", "albedo", "roughness", "metallic", "normal", "semantic_logits",
                                                     "opacity")}

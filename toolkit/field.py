@@ -40,7 +40,7 @@ from .encoding import HashGrid, HashGridConfig, positional_encoding
 from .io import srgb_to_linear
 from .space import SceneSpace, box_radius, contract
 
-__all__ = ["FieldConfig", "FieldOutputs", "DarsField", "N_CLASSES", "load_field_callables"]
+__all__ = ["FieldConfig", "FieldOutputs", "DarsField", "N_CLASSES"]
 
 N_CLASSES = 7
 
@@ -284,10 +284,3 @@ class DarsField(nn.Module):
         out.density = density
         return out
 
-
-def load_field_callables(run_dir, checkpoint=None):
-    """Alias of :func:`toolkit.train.load_field_callables` (imported lazily: the field does not depend on
-    training)."""
-    from .train import load_field_callables as _load
-
-    return _load(run_dir, checkpoint)

@@ -21,6 +21,7 @@ from ._checks import SceneError
 
 __all__ = [
     "atomic_write",
+    "save_torch",
     "read_image",
     "read_map",
     "write_png",
@@ -54,6 +55,20 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[io.IOBas
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def save_torch(path: str | os.PathLike, payload: Any) -> Path:
+    """Write ``payload`` with ``torch.save``, atomically (serialised in memory first, so a failing pickle leaves
+    nothing behind); returns the path. Every checkpoint and network file of the toolkit is written here.
+    """
+    import torch
+
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    path = Path(path)
+    with atomic_write(path) as f:
+        f.write(buf.getvalue())
+    return path
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:

@@ -53,7 +53,6 @@ Example:
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import os
@@ -69,7 +68,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ._checks import ConfigError, DarsError, check_shape
-from .io import atomic_write, linear_to_srgb, srgb_to_linear
+from .io import linear_to_srgb, save_torch, srgb_to_linear
 from .segment import IMAGENET_MEAN, IMAGENET_STD
 from .sh import SH_C0
 
@@ -632,12 +631,7 @@ def save_lightnet(path: str | os.PathLike, model: LightNet, extra: dict | None =
              for k, v in model.state_dict().items()}
     payload = {"format": _FORMAT, "version": 1, "arch": asdict(model.cfg), "state_dict": state,
                "meta": {**model.meta, **extra}}
-    buf = io.BytesIO()
-    torch.save(payload, buf)
-    path = Path(path)
-    with atomic_write(path) as f:
-        f.write(buf.getvalue())
-    return path
+    return save_torch(path, payload)
 
 
 def load_lightnet(path: str | os.PathLike | None = None, map_location: str | torch.device = "cpu") -> LightNet:

@@ -931,7 +931,7 @@ def mesh_depth_error(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor | 
     """
     import open3d as o3d
 
-    from .scene import generate_rays
+    from .cameras import generate_rays
 
     v = vertices.detach().cpu().numpy() if isinstance(vertices, torch.Tensor) else np.asarray(vertices)
     f = faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)

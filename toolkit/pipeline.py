@@ -1,18 +1,27 @@
 """The rendering pipeline: rays -> samples (sampling) -> field -> shading -> volume rendering.
 
 :func:`render_rays` is the one place that composes the stages; training, ``dars render``, evaluation, the
-ablations and the ONNX parity check all go through it.
+ablations and the ONNX parity check all go through it. What to render with is split in two:
+
+* :class:`RenderConfig` (frozen) — how: sampler, shading, deferred or per-sample heads, chunk size, near/far;
+* :class:`RenderInputs` — the run's state a render reads: occupancy grid, global light, background, scene box and
+  the DARS context.
+
+:func:`render_image` renders every output of one camera into a :class:`RenderedImage`;
+:meth:`toolkit.train.run.Run.render` does so with a trained run's own settings.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Literal
+from dataclasses import dataclass, replace
+from dataclasses import field as dc_field
+from typing import Callable, Literal
 
 import torch
 from torch import nn
 
+from ._checks import ConfigError, check_choice
 from .field import DarsField, FieldOutputs
 from .render import accumulate_along_rays, render_weights
 from .sampling import (OccupancyGrid, SamplerConfig, average_other_view_weights, coarse_samples, merge_samples,
@@ -20,8 +29,8 @@ from .sampling import (OccupancyGrid, SamplerConfig, average_other_view_weights,
 from .scene import Cameras, RayBundle, generate_rays
 from .shading import ShadingConfig, shade_pbr
 
-__all__ = ["Background", "DarsContext", "RenderOutputs", "render_rays", "render_image", "render_dars_context",
-           "RENDER_KEYS"]
+__all__ = ["Background", "DarsContext", "RenderConfig", "RenderInputs", "RenderOutputs", "RenderedImage", "render_rays",
+           "render_image", "render_dars_context", "RENDER_KEYS"]
 
 RENDER_KEYS = ("rgb", "depth", "opacity", "normal", "albedo", "roughness", "metallic", "semantic_logits",
                "diffuse", "specular")
@@ -100,6 +109,52 @@ class DarsContext:
     view_of_ray: torch.Tensor | None = None  # [R] training view index of each ray (None: nearest view)
 
 
+@dataclass(frozen=True)
+class RenderConfig:
+    """How to render: what a run fixes (:meth:`toolkit.train.run.Run.render_config` builds the run's own)."""
+
+    sampler: SamplerConfig = dc_field(default_factory=SamplerConfig)
+    """Sample counts and DARS switches (a run renders test views with its ``render_sampler``)."""
+    shading: Literal["pbr", "radiance"] = "pbr"
+    """``pbr``: decomposed (material + SH light); ``radiance``: the plain NeRF colour head."""
+    deferred: bool = False
+    """True: only density and the shared feature h per sample, the heads and the PBR shading once per ray on
+    h̄ = Σ w h / Σ w (cheaper); False (default, as :attr:`toolkit.train.TrainConfig.deferred`): heads and shading
+    at every sample, shaded colours composited. A run's renders use the run's setting."""
+    shading_cfg: ShadingConfig = dc_field(default_factory=ShadingConfig)
+    """Options of :func:`toolkit.shading.shade_pbr`."""
+    chunk: int = 8192
+    """Rays per batch in :func:`render_image` (memory bound; results do not depend on it)."""
+    near: float | None = None
+    """Scene near bound along the rays, metres (``None``: from the box only); :func:`render_image`."""
+    far: float | None = None
+    """Scene far bound, metres (``None``: from the box only); :func:`render_image`."""
+
+    def __post_init__(self):
+        check_choice(self.shading, ("pbr", "radiance"), "shading")
+        if self.chunk < 1:
+            raise ConfigError(f"chunk={self.chunk} must be >= 1")
+
+
+@dataclass
+class RenderInputs:
+    """The state a render reads (a trained run's, or the trainer's).
+
+    Attributes:
+        occupancy: empty-space grid (None: no skipping).
+        l_env: float [9, 3] global SH light (``pbr``), or None.
+        background: what rays see after leaving the box.
+        aabb: float [2, 3] scene box, metres (ray bounds of :func:`render_image`; None: ``near``/``far`` only).
+        dars: DARS context (W maps of the training views) for the along-ray part when ``sampler.dars``, or None.
+    """
+
+    occupancy: OccupancyGrid | None
+    l_env: torch.Tensor | None
+    background: Background
+    aabb: torch.Tensor | None = None
+    dars: DarsContext | None = None
+
+
 @dataclass
 class RenderOutputs:
     """Per-ray results (R rays) and a few per-sample values for losses.
@@ -171,45 +226,36 @@ def _query(field: DarsField, points, dirs, l_env, mode, deferred: bool, hook=Non
 def render_rays(
     field: DarsField,
     rays: RayBundle,
-    sampler: SamplerConfig,
-    occupancy: OccupancyGrid | None,
-    l_env: torch.Tensor | None,
-    background: Background,
-    shading: Literal["pbr", "radiance"] = "pbr",
-    dars: DarsContext | None = None,
+    cfg: RenderConfig,
+    inputs: RenderInputs,
     ray_weights: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
-    shading_cfg: ShadingConfig = ShadingConfig(),
-    deferred: bool = True,
-    outputs_hook=None,
+    outputs_hook: Callable[[FieldOutputs], FieldOutputs] | None = None,
 ) -> RenderOutputs:
     """Render a batch of rays (differentiable w.r.t. the field, ``l_env`` and the background).
 
     Two passes: the field's density at the occupied stratified samples gives the hierarchical proposal; fine
     samples (DARS budgets and along-ray density when enabled) are drawn from it; the union is rendered.
 
-    ``deferred`` (default): only density and the shared feature h are evaluated per sample; the heads run
-    once per ray on h̄ = Σ w h / Σ w and the PBR shading uses the ray's material, normal and local light
-    (for opaque surfaces this equals querying the heads at the surface point). ``deferred=False`` runs the heads
-    and the shading at every sample and composites the shaded colours.
+    ``cfg.deferred``: only density and the shared feature h are evaluated per sample; the heads run once per ray on
+    h̄ = Σ w h / Σ w and the PBR shading uses the ray's material, normal and local light (for opaque surfaces this
+    equals querying the heads at the surface point). Otherwise the heads and the shading run at every sample and
+    the shaded colours are composited.
 
     Args:
         field: the field.
-        rays: R rays (near/far already set).
-        sampler: sample counts and DARS switches.
-        occupancy: empty-space grid (None: no skipping).
-        l_env: float [9, 3] global SH light (``pbr``).
-        background: background model.
-        shading: ``pbr`` (decomposed: material + SH light) or ``radiance`` (plain NeRF colour head).
-        dars: DARS context (W maps of the training views); needed for the along-ray part when ``sampler.dars``.
+        rays: R rays (near/far already set; ``cfg.chunk``, ``cfg.near`` and ``cfg.far`` are not used here).
+        cfg: sampler, shading, deferred.
+        inputs: occupancy grid, l_env [9, 3], background; ``inputs.dars`` for the along-ray part when
+            ``cfg.sampler.dars`` (``inputs.aabb`` is not used here).
         ray_weights: float [R] W at each ray's pixel (training), for the per-ray budgets; None: uniform budget.
         generator: RNG for stratified jitter.
-        shading_cfg: options of :func:`toolkit.shading.shade_pbr`.
-        deferred: heads and shading per ray (fast) or per sample.
         outputs_hook: optional callable ``FieldOutputs -> FieldOutputs`` applied to every field query before
-            shading (relighting and material edits, :mod:`toolkit.relight`); with ``deferred`` it sees the per-ray
+            shading (relighting and material edits, :mod:`toolkit.relight`); when deferred it sees the per-ray
             head outputs.
     """
+    sampler, shading, shading_cfg, deferred = cfg.sampler, cfg.shading, cfg.shading_cfg, cfg.deferred
+    occupancy, l_env, background, dars = inputs.occupancy, inputs.l_env, inputs.background, inputs.dars
     R = len(rays)
     n = sampler.n_coarse
     dev = rays.origins.device
@@ -316,44 +362,83 @@ def render_rays(
                          fine_counts=counts, deferred=deferred, sample_normals=sample_normals, sample_s=sample_s)
 
 
+@dataclass
+class RenderedImage:
+    """Every output of one camera as images (H x W pixels), from :func:`render_image`.
+
+    ``rgb``, ``diffuse`` and ``specular`` are linear radiance (background composited into ``rgb``); ``depth`` is
+    metres along the camera axis; ``normal`` is unit (world); material maps and ``semantic_logits`` as in
+    :class:`RenderOutputs`; ``samples`` is the number of samples each ray took. The material, diffuse and specular
+    maps are None for a ``radiance`` run.
+
+    Attributes:
+        rgb: float [H, W, 3].
+        depth: float [H, W].
+        opacity: float [H, W].
+        normal: float [H, W, 3].
+        semantic_logits: float [H, W, C].
+        samples: float [H, W].
+        albedo: float [H, W, 3] or None.
+        roughness: float [H, W] or None.
+        metallic: float [H, W] or None.
+        diffuse: float [H, W, 3] or None.
+        specular: float [H, W, 3] or None.
+    """
+
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    opacity: torch.Tensor
+    normal: torch.Tensor
+    semantic_logits: torch.Tensor
+    samples: torch.Tensor
+    albedo: torch.Tensor | None = None
+    roughness: torch.Tensor | None = None
+    metallic: torch.Tensor | None = None
+    diffuse: torch.Tensor | None = None
+    specular: torch.Tensor | None = None
+
+    def as_dict(self) -> dict[str, torch.Tensor]:
+        """The outputs that exist, by name (:data:`RENDER_KEYS` order, then ``samples``)."""
+        out = {k: getattr(self, k) for k in RENDER_KEYS if getattr(self, k) is not None}
+        out["samples"] = self.samples
+        return out
+
+
 @torch.no_grad()
 def render_image(
     field: DarsField,
     cameras: Cameras,
     index: int,
-    sampler: SamplerConfig,
-    occupancy: OccupancyGrid | None,
-    l_env: torch.Tensor | None,
-    background: Background,
-    aabb: torch.Tensor,
-    shading: Literal["pbr", "radiance"] = "pbr",
-    dars: DarsContext | None = None,
-    chunk: int = 8192,
-    near: float | None = None,
-    far: float | None = None,
-    deferred: bool = True,
-    outputs_hook=None,
-) -> dict[str, torch.Tensor]:
-    """Render every output of camera ``index`` as images.
+    cfg: RenderConfig,
+    inputs: RenderInputs,
+    outputs_hook: Callable[[FieldOutputs], FieldOutputs] | None = None,
+) -> RenderedImage:
+    """Render every output of camera ``index``.
 
-    ``dars``: a context whose first ``neighbours`` row lists the training views nearest this camera
-    (:func:`render_dars_context`).
+    Args:
+        field: the field.
+        cameras: the cameras.
+        index: which camera.
+        cfg: sampler, shading, deferred, chunk and the scene's near/far.
+        inputs: the run's state; ``inputs.aabb`` bounds the rays; ``inputs.dars`` is a context whose first
+            ``neighbours`` row lists the training views nearest this camera (:func:`render_dars_context`).
+        outputs_hook: see :func:`render_rays`.
 
     Returns:
-        dict of float tensors [H, W, C] (``rgb``, ``albedo``, ``diffuse``, ``specular``, ``normal``,
-        ``semantic_logits``) or [H, W] (``depth``, ``opacity``, ``roughness``, ``metallic``, ``samples``).
+        :class:`RenderedImage`.
     """
     h, w = int(cameras.height[index]), int(cameras.width[index])
-    rays = generate_rays(cameras, [index], aabb=field.space if field.cfg.contraction else aabb, near=near, far=far)
+    rays = generate_rays(cameras, [index], aabb=field.space if field.cfg.contraction else inputs.aabb, near=cfg.near,
+                         far=cfg.far)
+    dars = inputs.dars
     outs: dict[str, list[torch.Tensor]] = {}
-    for i in range(0, len(rays), chunk):
-        sub = rays[i:i + chunk]
+    for i in range(0, len(rays), cfg.chunk):
+        sub = rays[i:i + cfg.chunk]
         ctx = None
         if dars is not None:  # every ray of this image belongs to the one view whose neighbours are row 0
             ctx = DarsContext(dars.cameras, dars.weight_maps, dars.neighbours[:1],
                               torch.zeros(len(sub), dtype=torch.long, device=sub.origins.device))
-        r = render_rays(field, sub, sampler, occupancy, l_env, background, shading, ctx, deferred=deferred,
-                        outputs_hook=outputs_hook)
+        r = render_rays(field, sub, cfg, replace(inputs, dars=ctx), outputs_hook=outputs_hook)
         for k in RENDER_KEYS:
             v = getattr(r, k)
             if v is not None:
@@ -363,4 +448,4 @@ def render_image(
     for k, vs in outs.items():
         v = torch.cat(vs)
         result[k] = v.reshape(h, w, -1) if v.dim() == 2 else v.reshape(h, w)
-    return result
+    return RenderedImage(**result)

@@ -30,7 +30,8 @@ import numpy as np
 
 from .io import atomic_write, write_json
 
-__all__ = ["HEADLINE", "EXTRA_COLUMNS", "format_metric", "headline_markdown", "headline_text", "plot_training_curves",
+__all__ = ["HEADLINE", "EXTRA_COLUMNS", "ABLATION_COLUMNS", "format_metric", "headline_markdown", "headline_text",
+           "ablation_text", "text_table", "plot_training_curves",
            "write_eval_report", "write_ablation_report"]
 
 HEADLINE: tuple[tuple[str, str, str, bool], ...] = (
@@ -50,7 +51,13 @@ EXTRA_COLUMNS: tuple[tuple[str, str, str, bool], ...] = (
     ("miou", "mIoU", "{:.4f}", True),
 )
 
+_COLUMNS = {c[0]: c for c in HEADLINE + EXTRA_COLUMNS}
 _FORMATS = {k: f for k, _, f, _ in HEADLINE + EXTRA_COLUMNS}
+
+ABLATION_COLUMNS: tuple[tuple[str, str, str, bool], ...] = tuple(
+    _COLUMNS[k] for k in ("psnr", "ssim", "lpips", "flip", "albedo_mae", "roughness_rmse", "env_light_l2",
+                          "view_consistency"))
+"""Columns of the Table 6-style ablation table (the headline's columns, in the paper's Table 6 order)."""
 _LOSS_TERMS = (("loss", "L_total"), ("rgb", "L_rgb"), ("ssim", "L_ssim"), ("mat", "L_mat"),
                ("psnr_loss", "L_psnr"), ("eikonal", "L_eikonal"), ("orientation", "L_orientation"),
                ("distortion", "L_distortion"), ("semantic", "L_semantic"), ("light_reg", "L_light_reg"),
@@ -60,30 +67,39 @@ _NOT_LOSSES = {"kind", "step", "elapsed", "lr", "occupancy", "psnr", "samples_pe
 
 def format_metric(key: str, value) -> str:
     """A metric value as printed in the tables (``n/a`` for None)."""
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "n/a"
-    return _FORMATS.get(key, "{:.4g}").format(value)
+    return _fmt(value, _FORMATS.get(key, "{:.4g}"))
+
+
+def _fmt(x, f="{:.4g}") -> str:
+    return "n/a" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f.format(x)
 
 
 def _arrow(better_high: bool) -> str:
     return "↑" if better_high else "↓"
 
 
+def _metric_cells(metrics: dict, columns) -> list[str]:
+    return [format_metric(k, metrics.get(k)) for k, _, _, _ in columns]
+
+
 def headline_markdown(metrics: dict, columns=HEADLINE) -> str:
     """One-row Markdown table of ``metrics`` (Table 5 layout)."""
-    head = "| " + " | ".join(f"{t} {_arrow(h)}" for _, t, _, h in columns) + " |"
-    sep = "|" + "|".join("---:" for _ in columns) + "|"
-    row = "| " + " | ".join(format_metric(k, metrics.get(k)) for k, _, _, _ in columns) + " |"
-    return "\n".join([head, sep, row])
+    return _md_table([f"{t} {_arrow(h)}" for _, t, _, h in columns], [_metric_cells(metrics, columns)],
+                     first_left=False)
+
+
+def text_table(header: list[str], rows: list[list[str]], first_left: bool = False) -> str:
+    """A plain-text table for the terminal: columns as wide as their widest cell, two spaces apart, right-aligned
+    (the first column left-aligned with ``first_left``)."""
+    widths = [max(len(r[j]) for r in [header] + rows) for j in range(len(header))]
+    return "\n".join("  ".join(c.ljust(w) if j == 0 and first_left else c.rjust(w)
+                               for j, (c, w) in enumerate(zip(r, widths))) for r in [header] + rows)
 
 
 def headline_text(metrics: dict, unavailable: dict | None = None) -> str:
     """Plain-text headline table for the terminal, then the unavailable metrics with their reasons."""
     cols = HEADLINE + EXTRA_COLUMNS
-    titles = [t for _, t, _, _ in cols]
-    vals = [format_metric(k, metrics.get(k)) for k, _, _, _ in cols]
-    widths = [max(len(t), len(v)) for t, v in zip(titles, vals)]
-    lines = ["  ".join(t.rjust(w) for t, w in zip(titles, widths)), "  ".join(v.rjust(w) for v, w in zip(vals, widths))]
+    lines = [text_table([t for _, t, _, _ in cols], [_metric_cells(metrics, cols)])]
     if unavailable:
         lines.append("unavailable:")
         lines += [f"  {k}: {r}" for k, r in unavailable.items()]
@@ -301,13 +317,10 @@ def _write_text(path: Path, text: str) -> None:
         f.write(text)
 
 
-def _md_table(header: list[str], rows: Iterable[list[str]], align_right: bool = True) -> str:
-    sep = "|" + "|".join(("---:" if align_right and i else "---") for i in range(len(header))) + "|"
+def _md_table(header: list[str], rows: Iterable[list[str]], first_left: bool = True) -> str:
+    """Markdown table, numbers right-aligned (the first column left-aligned with ``first_left``)."""
+    sep = "|" + "|".join(("---" if i == 0 and first_left else "---:") for i in range(len(header))) + "|"
     return "\n".join(["| " + " | ".join(header) + " |", sep] + ["| " + " | ".join(r) + " |" for r in rows])
-
-
-def _fmt(x, f="{:.4g}") -> str:
-    return "n/a" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f.format(x)
 
 
 def _training_md(t: dict) -> str:
@@ -482,19 +495,6 @@ def write_ablation_report(result, out_dir: str | Path) -> dict[str, Path]:
     return written
 
 
-ABLATION_COLUMNS: tuple[tuple[str, str, str, bool], ...] = (
-    ("psnr", "PSNR (dB)", "{:.2f}", True),
-    ("ssim", "SSIM", "{:.4f}", True),
-    ("lpips", "LPIPS", "{:.4f}", False),
-    ("flip", "FLIP", "{:.4f}", False),
-    ("albedo_mae", "Albedo MAE", "{:.4f}", False),
-    ("roughness_rmse", "Roughness RMSE", "{:.4f}", False),
-    ("env_light_l2", "Env-light L2", "{:.4f}", False),
-    ("view_consistency", "View consistency", "{:.4f}", False),
-)
-"""Columns of the Table 6-style ablation table."""
-
-
 def _delta(d, fmt: str) -> str:
     return "" if d is None else f" ({'+' if d >= 0 else '−'}{fmt.format(abs(d))})"
 
@@ -548,3 +548,10 @@ def _ablation_markdown(doc: dict, written: dict, out: Path) -> str:
         L.append(f"- {v['label']}: run `{v['run']}`" + (f", [report]({rel})" if rel else "")
                  + (" (reused an existing run)" if v.get("reused") else ""))
     return "\n".join(L) + "\n"
+
+
+def ablation_text(doc: dict) -> str:
+    """The Table 6 metrics of an ``ablation.json`` document as a plain-text table for the terminal."""
+    header = ["variant"] + [t for _, t, _, _ in ABLATION_COLUMNS]
+    return text_table(header, [[v["label"]] + _metric_cells(v["metrics"], ABLATION_COLUMNS) for v in doc["variants"]],
+                      first_left=True)

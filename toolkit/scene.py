@@ -1,4 +1,4 @@
-"""Stage 1 — load posed images into a :class:`Scene`; cameras, projection and rays.
+"""Stage 1 — load posed images into a :class:`Scene` (cameras, projection and rays: :mod:`toolkit.cameras`).
 
 Supported inputs (``load_scene(path, split=...)``):
 
@@ -30,7 +30,8 @@ from typing import Iterable, Literal, Sequence
 import numpy as np
 import torch
 
-from ._checks import SceneError, check_rigid_pose, check_shape
+from ._checks import SceneError, check_rigid_pose
+from .cameras import Cameras, RayBundle, generate_rays, intersect_aabb, project_points
 from .io import read_image, read_map
 
 __all__ = [
@@ -46,6 +47,7 @@ __all__ = [
     "generate_rays",
     "project_points",
     "intersect_aabb",
+    "scene_info",
 ]
 
 SEMANTIC_CLASSES: tuple[str, ...] = ("painting", "frame", "display", "base", "wall", "floor", "other")
@@ -76,52 +78,6 @@ _RADIAL_CV_MODELS = {"SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"}
 _FISHEYE_MODELS = {"SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE", "FOV", "THIN_PRISM_FISHEYE"}
 
 Split = Literal["train", "val", "test", "all"]
-
-
-@dataclass(frozen=True)
-class Cameras:
-    """A batch of pinhole cameras (after any undistortion and downscaling).
-
-    Attributes:
-        c2w: float [N, 4, 4] camera-to-world, OpenGL convention, metres.
-        fx, fy: float [N] focal lengths in pixels.
-        cx, cy: float [N] principal point in pixels (pixel centres at +0.5).
-        width, height: int [N] image size in pixels.
-    """
-
-    c2w: torch.Tensor
-    fx: torch.Tensor
-    fy: torch.Tensor
-    cx: torch.Tensor
-    cy: torch.Tensor
-    width: torch.Tensor
-    height: torch.Tensor
-
-    def __len__(self) -> int:
-        return int(self.c2w.shape[0])
-
-    def __getitem__(self, idx) -> "Cameras":
-        if isinstance(idx, int):
-            idx = [idx]
-        return Cameras(*(getattr(self, f)[idx] for f in ("c2w", "fx", "fy", "cx", "cy", "width", "height")))
-
-    def to(self, device: torch.device | str) -> "Cameras":
-        return Cameras(*(getattr(self, f).to(device) for f in ("c2w", "fx", "fy", "cx", "cy", "width", "height")))
-
-    @property
-    def device(self) -> torch.device:
-        return self.c2w.device
-
-    @property
-    def origins(self) -> torch.Tensor:
-        """float [N, 3] camera centres in world space."""
-        return self.c2w[:, :3, 3]
-
-    def intrinsics(self) -> torch.Tensor:
-        """float [N, 3, 3] intrinsic matrices K (pixel-centre convention of the module docstring)."""
-        K = torch.zeros(len(self), 3, 3, dtype=self.fx.dtype, device=self.fx.device)
-        K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = self.fx, self.fy, self.cx, self.cy, 1.0
-        return K
 
 
 @dataclass(frozen=True)
@@ -374,153 +330,6 @@ class Scene:
             n = n / np.clip(np.linalg.norm(n, axis=-1, keepdims=True), 1e-6, None)
             img = np.where(valid, n, 0.0).astype(np.float32)
         return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))
-
-
-# ====================================================================== rays
-@dataclass(frozen=True)
-class RayBundle:
-    """A batch of camera rays.
-
-    Attributes:
-        origins: float [N, 3] world-space ray origins, metres.
-        directions: float [N, 3] unit world-space directions.
-        camera_indices: int64 [N] camera index within the :class:`Cameras` the rays came from.
-        pixels: int64 [N, 2] (u, v) = (column, row) of each ray's pixel.
-        near, far: float [N] ray-parameter bounds (metres along ``directions``); ``far <= near`` means the ray
-            misses the scene box.
-        z_scale: float [N] cosine between the ray and the camera's optical axis (depth = t * z_scale).
-    """
-
-    origins: torch.Tensor
-    directions: torch.Tensor
-    camera_indices: torch.Tensor
-    pixels: torch.Tensor
-    near: torch.Tensor
-    far: torch.Tensor
-    z_scale: torch.Tensor
-
-    def __len__(self) -> int:
-        return int(self.origins.shape[0])
-
-    def __getitem__(self, idx) -> "RayBundle":
-        return RayBundle(*(getattr(self, f)[idx] for f in
-                           ("origins", "directions", "camera_indices", "pixels", "near", "far", "z_scale")))
-
-    def to(self, device) -> "RayBundle":
-        return RayBundle(*(getattr(self, f).to(device) for f in
-                           ("origins", "directions", "camera_indices", "pixels", "near", "far", "z_scale")))
-
-
-def intersect_aabb(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor,
-                   near_min: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Slab test of rays against an axis-aligned box.
-
-    Args:
-        origins: float [N, 3] ray origins.
-        directions: float [N, 3] ray directions (need not be unit; t is in their units).
-        aabb: float [2, 3] box min and max.
-        near_min: lower clamp for the entry distance (rays starting inside the box start here).
-
-    Returns:
-        (near, far) float [N] each; ``far <= near`` where the ray misses the box.
-    """
-    aabb = aabb.to(origins)
-    inv = 1.0 / torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
-    t0 = (aabb[0] - origins) * inv
-    t1 = (aabb[1] - origins) * inv
-    near = torch.minimum(t0, t1).amax(-1).clamp_min(near_min)
-    far = torch.maximum(t0, t1).amin(-1)
-    return near, far
-
-
-def generate_rays(
-    cameras: Cameras,
-    camera_indices: torch.Tensor | Sequence[int] | None = None,
-    pixels: torch.Tensor | None = None,
-    aabb=None,
-    near: float | None = None,
-    far: float | None = None,
-    near_min: float = 0.05,
-) -> RayBundle:
-    """Pixel -> world ray, for all pixels of some cameras or for a sampled subset.
-
-    Either give ``pixels`` (int [N, 2] (u, v)) together with ``camera_indices`` (int [N]), or give only
-    ``camera_indices`` (a list of cameras; every pixel of each, row-major) or nothing (every pixel of every
-    camera). Rays are allocated on the cameras' device.
-
-    Ray bounds: the intersection with ``aabb`` (entry clamped to ``near_min``) — a float [2, 3] box, or a
-    :class:`toolkit.space.SceneSpace` (contracted: out to its far radius) —, further limited to ``[near, far]``
-    when those are given (the file's); without a box ``[near, far]`` or ``[near_min, 1e3]``.
-
-    Example:
-        >>> rays = generate_rays(scene.cameras, [0], aabb=scene.aabb)  # all pixels of camera 0
-    """
-    device = cameras.device
-    if pixels is None:
-        cams = range(len(cameras)) if camera_indices is None else [int(c) for c in camera_indices]
-        idx_list, pix_list = [], []
-        for c in cams:
-            h, w = int(cameras.height[c]), int(cameras.width[c])
-            v, u = torch.meshgrid(torch.arange(h, device=device), torch.arange(w, device=device), indexing="ij")
-            pix_list.append(torch.stack([u.reshape(-1), v.reshape(-1)], -1))
-            idx_list.append(torch.full((h * w,), c, dtype=torch.long, device=device))
-        pixels = torch.cat(pix_list) if pix_list else torch.zeros(0, 2, dtype=torch.long, device=device)
-        cam_idx = torch.cat(idx_list) if idx_list else torch.zeros(0, dtype=torch.long, device=device)
-    else:
-        check_shape(pixels, "N 2", "pixels")
-        if camera_indices is None:
-            raise ValueError("generate_rays: pixels given without camera_indices")
-        cam_idx = torch.as_tensor(camera_indices, dtype=torch.long, device=device).expand(pixels.shape[0])
-        pixels = pixels.to(device)
-    c2w = cameras.c2w[cam_idx]
-    fx, fy, cx, cy = (getattr(cameras, k)[cam_idx] for k in ("fx", "fy", "cx", "cy"))
-    pu = pixels[:, 0].to(c2w.dtype) + 0.5
-    pv = pixels[:, 1].to(c2w.dtype) + 0.5
-    d_cam = torch.stack([(pu - cx) / fx, -(pv - cy) / fy, -torch.ones_like(pu)], -1)
-    d_world = (c2w[:, :3, :3] @ d_cam.unsqueeze(-1)).squeeze(-1)
-    norm = d_world.norm(dim=-1, keepdim=True)
-    directions = d_world / norm
-    z_scale = 1.0 / norm.squeeze(-1)
-    origins = c2w[:, :3, 3].expand_as(directions).contiguous()
-    if aabb is not None and hasattr(aabb, "ray_bounds"):  # a SceneSpace
-        n, f = aabb.ray_bounds(origins, directions, near_min)
-        if near is not None and far is not None:
-            n, f = torch.maximum(n, torch.full_like(n, float(near))), torch.minimum(f, torch.full_like(f, float(far)))
-    elif near is not None and far is not None:
-        n = torch.full_like(pu, float(near))
-        f = torch.full_like(pu, float(far))
-        if aabb is not None:  # the file's bounds, clipped to the scene box (nothing is modelled outside it)
-            bn, bf = intersect_aabb(origins, directions, aabb, near_min)
-            n, f = torch.maximum(n, bn), torch.minimum(f, bf)
-    elif aabb is not None:
-        n, f = intersect_aabb(origins, directions, aabb, near_min)
-    else:
-        n, f = torch.full_like(pu, near_min), torch.full_like(pu, 1e3)
-    return RayBundle(origins, directions, cam_idx, pixels.long(), n, f, z_scale)
-
-
-def project_points(cameras: Cameras, index: int, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Project world points into camera ``index``.
-
-    Args:
-        cameras: the cameras.
-        index: which camera.
-        points: float [N, 3] world points, metres.
-
-    Returns:
-        (uv, depth): float [N, 2] continuous pixel coordinates in the convention of the module docstring
-        (pixel (u, v)'s centre is at (u + 0.5, v + 0.5); ``floor(uv)`` is the pixel index), and float [N]
-        depth along the optical axis (positive in front of the camera).
-    """
-    check_shape(points, "N 3", "points")
-    c2w = cameras.c2w[index].to(points)
-    rel = points - c2w[:3, 3]
-    p_cam = rel @ c2w[:3, :3]  # R^T (p - o)
-    depth = -p_cam[:, 2]
-    safe = torch.where(depth.abs() < 1e-9, torch.full_like(depth, 1e-9), depth)
-    u = cameras.fx[index].to(points) * p_cam[:, 0] / safe + cameras.cx[index].to(points)
-    v = -cameras.fy[index].to(points) * p_cam[:, 1] / safe + cameras.cy[index].to(points)
-    return torch.stack([u, v], -1), depth
 
 
 # ====================================================================== loading
@@ -1001,3 +810,37 @@ def _load_colmap(path: Path, split: str, test_every: int, bg, downscale: int, di
     cams = _make_cameras(c2w, fxs, fys, cxs, cys, ws, hs, downscale)
     return Scene(source=model, split=split, cameras=cams, frames=tuple(frames), aabb=torch.tensor(box, dtype=torch.float32),
                  background=bg, downscale=downscale, srgb=True, meta=meta)
+
+
+# ====================================================================== summary
+def scene_info(path: str | Path) -> dict:
+    """Everything ``dars info`` reports about a scene, as a dict (no pixels are decoded): frames, image size and
+    ground-truth maps per split, format, intrinsics, box, near/far, the ground-truth light."""
+    path = Path(path)
+    splits = list_splits(path)
+    info: dict = {"scene": str(path), "splits": {}}
+    first = None
+    for s in splits:
+        if s == "all" and len(splits) > 1 and "train" in splits:
+            continue
+        sc = load_scene(path, s)
+        first = first or sc
+        h, w = sc.image_size
+        info["splits"][s] = {
+            "frames": len(sc),
+            "image_size": [w, h],
+            "ground_truth": sc.extras_available(),
+        }
+    cams = first.cameras
+    info["format"] = first.meta.get("format", "transforms json")
+    info["source"] = str(first.source)
+    info["intrinsics"] = {
+        "fx": float(cams.fx[0]), "fy": float(cams.fy[0]), "cx": float(cams.cx[0]), "cy": float(cams.cy[0]),
+        "shared": bool((cams.fx == cams.fx[0]).all() and (cams.cx == cams.cx[0]).all()),
+        "distortion": first.frames[0].distortion is not None,
+    }
+    info["aabb"] = first.aabb.tolist()
+    info["near_far"] = [first.near, first.far] if first.near is not None else None
+    info["sh"] = first.sh.tolist() if first.sh is not None else None
+    info["envmap"] = str(first.envmap_path) if first.envmap_path else None
+    return info

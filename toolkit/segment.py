@@ -23,7 +23,6 @@ One function, three backends (:class:`SegmentConfig.backend`):
 
 from __future__ import annotations
 
-import io
 import math
 import os
 import time
@@ -37,7 +36,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ._checks import ConfigError, DarsError, ShapeError, check_shape
-from .io import atomic_write
+from .io import save_torch
 
 __all__ = [
     "NUM_CLASSES",
@@ -601,12 +600,7 @@ def save_segmenter(path: str | os.PathLike, model: Segmenter, extra: dict | None
         "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
         "extra": dict(extra or {}),
     }
-    buf = io.BytesIO()
-    torch.save(payload, buf)
-    path = Path(path)
-    with atomic_write(path) as f:
-        f.write(buf.getvalue())
-    return path
+    return save_torch(path, payload)
 
 
 def load_segmenter(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> Segmenter:

@@ -40,6 +40,7 @@ Exporter conventions (converted at the boundary, tested in ``tests/test_sh.py``)
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +52,8 @@ import torch
 from ._checks import ConfigError, DarsError, SceneError, check_finite, check_shape
 
 __all__ = [
+    "check_sh_coeffs",
+    "read_sh_json",
     "SH_C0",
     "SH_C1",
     "SH_C2",
@@ -643,3 +646,49 @@ def sh_to_gltf_ibl(coeffs: torch.Tensor | np.ndarray, intensity: float = 1.0) ->
         "rotation": [0.0, 0.0, 0.0, 1.0],
         "irradianceCoefficients": [[float(v) for v in row] for row in irr.tolist()],
     }
+
+
+# ============================================================================ SH files
+def check_sh_coeffs(c, where: str) -> np.ndarray:
+    """SH coefficients as float64 [9, 3] (9 x [r, g, b], or 27 numbers coefficient-major).
+
+    Raises:
+        DarsError: another shape, or NaN / inf, naming ``where``.
+    """
+    c = np.asarray(c, dtype=np.float64)
+    if c.shape == (27,):
+        c = c.reshape(9, 3)
+    if c.shape != (9, 3):
+        raise DarsError(f"{where}: SH must be 9 x [r, g, b] (or 27 numbers), got shape {list(c.shape)}")
+    if not np.isfinite(c).all():
+        raise DarsError(f"{where}: SH contains NaN or inf")
+    return c
+
+
+def read_sh_json(path: str | Path) -> np.ndarray:
+    """Read float64 [9, 3] SH coefficients from a JSON file: ``{"coeffs": 9 x [r, g, b]}`` (the output of
+    ``dars priors sh-probe FILE --json``), ``{"sh": ...}`` (a transforms JSON), ``{"l_env": ...}``, or a bare
+    9 x 3 / 27 list.
+
+    Raises:
+        SceneError: missing or unreadable file, or no coefficients in it, naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"SH JSON not found: {path}")
+    try:
+        obj = json.loads(path.read_text())
+    except ValueError as e:
+        raise SceneError(f"{path} is not valid JSON: {e}") from e
+    if isinstance(obj, dict):
+        for key in ("coeffs", "sh", "l_env"):
+            if key in obj:
+                obj = obj[key]
+                break
+        else:
+            raise SceneError(f"{path}: no SH found; expected a 'coeffs' or 'sh' key (9 x [r, g, b]) "
+                             "as written by `dars priors sh-probe FILE --json`")
+    try:
+        return check_sh_coeffs(obj, str(path))
+    except (TypeError, ValueError) as e:
+        raise SceneError(f"{path}: {e}") from e

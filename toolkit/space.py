@@ -109,7 +109,7 @@ class SceneSpace:
     def ray_bounds(self, origins: torch.Tensor, directions: torch.Tensor,
                    near_min: float = 0.05) -> tuple[torch.Tensor, torch.Tensor]:
         """(near, far) float [N]: the box (bounded) or the far-radius box (contracted) along each ray."""
-        from .scene import intersect_aabb
+        from .cameras import intersect_aabb
 
         aabb = self.aabb.to(origins)
         if self.contraction:

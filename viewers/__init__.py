@@ -3,7 +3,9 @@
 * :mod:`viewers.shading_glsl` — the GLSL generated from :mod:`toolkit.shading` (one shading, held together by a test).
 * :mod:`viewers.preview` — headless / in-window moderngl rendering of a GLB (lit, albedo, roughness, metallic,
   normals, semantics); :func:`viewers.preview.render_preview` renders one PNG-ready image.
-* :mod:`viewers.camera` — pinhole cameras in the dars world, the glTF axis conversion, orbit and walk controllers.
+* :mod:`viewers.camera` — the glTF axis conversion of :class:`toolkit.pinhole.PinholeCamera`, framing, orbit and walk
+  controllers.
+* :mod:`viewers.gl` — the headless OpenGL (EGL) context.
 * :mod:`viewers.lighting` — the SH light of a GLB, a JSON file or an HDR probe (relighting).
 * :mod:`viewers.window` — the interactive glfw window (``dars view ASSET``).
 * :mod:`viewers.web` — the static three.js / WebXR page (``dars export-web``).

@@ -1,31 +1,32 @@
-"""Viewer cameras: pinhole intrinsics + OpenGL camera-to-world, the glTF axis conversion, orbit and walk controllers.
+"""Viewer cameras: the glTF axis conversion, framing, ``SCENE:SPLIT:INDEX`` specs, orbit and walk controllers.
 
 Conventions:
 
-* :class:`ViewCamera` holds a camera exactly as the toolkit does (``toolkit.scene.Cameras``, SPEC): camera-to-world
-  4x4 in OpenGL convention (x right, y up, looking down −z) in the dars world (+z up, metres) and pinhole intrinsics
-  in pixels with pixel ``(u, v)`` centred at ``(u + ½, v + ½)``, row 0 at the top.
+* Cameras are :class:`toolkit.pinhole.PinholeCamera` (the numpy camera ``export/`` uses too): camera-to-world 4x4
+  in OpenGL convention (x right, y up, looking down −z) in the dars world (+z up, metres) and pinhole intrinsics in
+  pixels with pixel ``(u, v)`` centred at ``(u + ½, v + ½)``, row 0 at the top.
 * The viewers draw a GLB's vertex data as stored, in glTF's +y-up frame, so the camera is rotated into that frame with
   the exporter's map ``(x, y, z) → (x, z, −y)`` (:data:`export.gltf.WORLD_TO_GLTF`): ``c2w_gltf = R · c2w`` with
-  ``R = diag(WORLD_TO_GLTF, 1)``. :meth:`ViewCamera.projection` maps the intrinsics to an OpenGL clip matrix whose
-  fragment centres coincide with :func:`toolkit.scene.generate_rays`' pixel centres (window row 0 at the bottom:
-  flip rows on read-back).
+  ``R = diag(WORLD_TO_GLTF, 1)``. :meth:`PinholeCamera.projection` maps the intrinsics to an OpenGL clip matrix whose
+  fragment centres coincide with :func:`toolkit.cameras.generate_rays`' pixel centres (window row 0 at the bottom:
+  flip rows on read-back); :func:`view_projection_gltf` combines the two.
 * Controllers (:class:`OrbitController`, :class:`WalkController`) work in the dars world (+z up) and produce a
-  :class:`ViewCamera`; they are pure numpy (tested without a window).
+  camera-to-world matrix; they are pure numpy (tested without a window).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from export.gltf import WORLD_TO_GLTF
-from toolkit._checks import ConfigError, DarsError, check_shape
+from toolkit._checks import DarsError, check_shape
+from toolkit.pinhole import PinholeCamera, look_at
 
-__all__ = ["ViewCamera", "look_at", "camera_from_spec", "default_camera", "OrbitController", "WalkController",
-           "gltf_c2w"]
+__all__ = ["camera_from_spec", "default_camera", "OrbitController", "WalkController", "gltf_c2w",
+           "view_matrix_gltf", "view_projection_gltf"]
 
 
 def gltf_c2w(c2w_world: np.ndarray) -> np.ndarray:
@@ -35,101 +36,14 @@ def gltf_c2w(c2w_world: np.ndarray) -> np.ndarray:
     return r @ np.asarray(c2w_world, dtype=np.float64)
 
 
-@dataclass(frozen=True)
-class ViewCamera:
-    """A pinhole camera in the dars world.
-
-    Attributes:
-        c2w: float64 [4, 4] OpenGL camera-to-world (x right, y up, −z forward), world +z up, metres.
-        fx, fy: focal lengths in pixels.
-        cx, cy: principal point in pixels (from the top-left image corner).
-        width, height: image size in pixels.
-        near, far: clip distances in metres.
-    """
-
-    c2w: np.ndarray
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    near: float = 0.02
-    far: float = 200.0
-
-    def __post_init__(self) -> None:
-        c2w = np.asarray(self.c2w, dtype=np.float64)
-        check_shape(c2w, "4 4", "ViewCamera.c2w")
-        if not np.isfinite(c2w).all():
-            raise DarsError("ViewCamera.c2w contains NaN or inf")
-        object.__setattr__(self, "c2w", c2w)
-        if self.width < 1 or self.height < 1:
-            raise ConfigError(f"ViewCamera: image size {self.width}x{self.height} must be positive")
-        if not (0 < self.near < self.far):
-            raise ConfigError(f"ViewCamera: need 0 < near ({self.near}) < far ({self.far})")
-
-    @classmethod
-    def from_cameras(cls, cameras, index: int, near: float = 0.02, far: float = 200.0) -> "ViewCamera":
-        """Camera ``index`` of a :class:`toolkit.scene.Cameras`."""
-        if not 0 <= index < len(cameras):
-            raise DarsError(f"camera index {index} is out of range (the split has {len(cameras)} cameras)")
-        g = lambda t: float(t[index])  # noqa: E731
-        return cls(cameras.c2w[index].detach().cpu().double().numpy(), g(cameras.fx), g(cameras.fy), g(cameras.cx),
-                   g(cameras.cy), int(cameras.width[index]), int(cameras.height[index]), near, far)
-
-    def resized(self, width: int, height: int | None = None) -> "ViewCamera":
-        """The same view at another resolution (intrinsics scaled; ``height`` keeps the aspect by default)."""
-        height = height if height is not None else max(1, round(self.height * width / self.width))
-        sx, sy = width / self.width, height / self.height
-        return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=width,
-                       height=height)
-
-    @property
-    def position(self) -> np.ndarray:
-        """float64 [3] camera centre, world."""
-        return self.c2w[:3, 3].copy()
-
-    def view_matrix_gltf(self) -> np.ndarray:
-        """float64 [4, 4] world-to-camera matrix for vertices in glTF's +y-up frame."""
-        return np.linalg.inv(gltf_c2w(self.c2w))
-
-    def projection(self) -> np.ndarray:
-        """float64 [4, 4] OpenGL projection from the pinhole intrinsics (NDC y up = image row 0 at the top)."""
-        w, h, n, f = float(self.width), float(self.height), self.near, self.far
-        p = np.zeros((4, 4))
-        p[0, 0] = 2.0 * self.fx / w
-        p[0, 2] = 1.0 - 2.0 * self.cx / w
-        p[1, 1] = 2.0 * self.fy / h
-        p[1, 2] = 2.0 * self.cy / h - 1.0
-        p[2, 2] = -(f + n) / (f - n)
-        p[2, 3] = -2.0 * f * n / (f - n)
-        p[3, 2] = -1.0
-        return p
-
-    def view_projection_gltf(self) -> np.ndarray:
-        """float64 [4, 4] clip-from-glTF-frame matrix."""
-        return self.projection() @ self.view_matrix_gltf()
+def view_matrix_gltf(camera: PinholeCamera) -> np.ndarray:
+    """float64 [4, 4] world-to-camera matrix of ``camera`` for vertices in glTF's +y-up frame."""
+    return np.linalg.inv(gltf_c2w(camera.c2w))
 
 
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """float64 [4, 4] OpenGL camera-to-world at ``eye`` looking at ``target`` (world +z up by default).
-
-    Raises:
-        DarsError: ``eye`` equals ``target`` or the view direction is parallel to ``up``.
-    """
-    eye, target, up = (np.asarray(x, dtype=np.float64) for x in (eye, target, up))
-    fwd = target - eye
-    if np.linalg.norm(fwd) < 1e-12:
-        raise DarsError("look_at: eye and target coincide")
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, up)
-    if np.linalg.norm(right) < 1e-9:
-        right = np.cross(fwd, np.array([0.0, 1.0, 0.0]) if abs(up[1]) < 0.9 else np.array([1.0, 0.0, 0.0]))
-    right /= np.linalg.norm(right)
-    true_up = np.cross(right, fwd)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, true_up, -fwd, eye
-    return m
+def view_projection_gltf(camera: PinholeCamera) -> np.ndarray:
+    """float64 [4, 4] clip-from-glTF-frame matrix of ``camera``."""
+    return camera.projection() @ view_matrix_gltf(camera)
 
 
 def _pinhole(width: int, height: int, fov_y_deg: float) -> tuple[float, float, float, float]:
@@ -137,7 +51,7 @@ def _pinhole(width: int, height: int, fov_y_deg: float) -> tuple[float, float, f
     return f, f, width * 0.5, height * 0.5
 
 
-def default_camera(vertices: np.ndarray, width: int = 1280, height: int = 720, fov_y_deg: float = 50.0) -> ViewCamera:
+def default_camera(vertices: np.ndarray, width: int = 1280, height: int = 720, fov_y_deg: float = 50.0) -> PinholeCamera:
     """A camera that frames a mesh: from the front-left, slightly above, looking at the bounding-box centre.
 
     Args:
@@ -153,11 +67,11 @@ def default_camera(vertices: np.ndarray, width: int = 1280, height: int = 720, f
     direction = np.array([-0.55, -0.75, 0.37])
     eye = centre + dist * direction / np.linalg.norm(direction)
     fx, fy, cx, cy = _pinhole(width, height, fov_y_deg)
-    return ViewCamera(look_at(eye, centre), fx, fy, cx, cy, width, height, near=dist * 1e-3, far=dist * 10 + radius)
+    return PinholeCamera(look_at(eye, centre), fx, fy, cx, cy, width, height, near=dist * 1e-3, far=dist * 10 + radius)
 
 
-def camera_from_spec(spec: str, width: int | None = None) -> ViewCamera:
-    """Parse ``SCENE:SPLIT:INDEX`` (a scene path, its split and a frame index) into a :class:`ViewCamera`.
+def camera_from_spec(spec: str, width: int | None = None) -> PinholeCamera:
+    """Parse ``SCENE:SPLIT:INDEX`` (a scene path, its split and a frame index) into a :class:`PinholeCamera`.
 
     The near/far planes come from the scene's bounds. ``width`` rescales the intrinsics (aspect kept).
 
@@ -175,7 +89,7 @@ def camera_from_spec(spec: str, width: int | None = None) -> ViewCamera:
         raise DarsError(f"--camera {spec!r}: index {index} is out of range ({scene_path} split {split!r} has "
                         f"{len(scene)} frames)")
     extent = float(np.linalg.norm((scene.aabb[1] - scene.aabb[0]).numpy()))
-    cam = ViewCamera.from_cameras(scene.cameras, index, near=max(extent * 1e-3, 1e-3), far=extent * 10)
+    cam = PinholeCamera.from_cameras(scene.cameras, index, near=max(extent * 1e-3, 1e-3), far=extent * 10)
     return cam.resized(width) if width else cam
 
 
@@ -197,7 +111,7 @@ class OrbitController:
     elevation: float = 20.0
 
     @classmethod
-    def from_camera(cls, camera: ViewCamera, target: np.ndarray) -> "OrbitController":
+    def from_camera(cls, camera: PinholeCamera, target: np.ndarray) -> "OrbitController":
         """Orbit through ``camera``'s position around ``target``."""
         target = np.asarray(target, dtype=np.float64)
         d = camera.position - target
@@ -245,7 +159,7 @@ class WalkController:
     speed: float = 1.0
 
     @classmethod
-    def from_camera(cls, camera: ViewCamera, speed: float = 1.0) -> "WalkController":
+    def from_camera(cls, camera: PinholeCamera, speed: float = 1.0) -> "WalkController":
         fwd = -camera.c2w[:3, 2]
         return cls(camera.position, math.degrees(math.atan2(fwd[0], fwd[1])),
                    math.degrees(math.asin(np.clip(fwd[2], -1, 1))), speed)

@@ -6,41 +6,30 @@ All functions return float64 [9, 3] SPEC-convention radiance SH in the dars worl
 * :func:`asset_sh`: the GLB's lossless copy in the root ``extras.dars.sh`` (written by :func:`export.gltf.export_gltf`);
   failing that, the ``EXT_lights_image_based`` ``irradianceCoefficients`` converted back (:func:`sh_from_gltf_ibl`,
   the inverse of :func:`toolkit.sh.sh_to_gltf_ibl`, so third-party GLBs with that extension light correctly).
-* :func:`load_sh_json`: ``{"coeffs": 9 x [r, g, b]}`` (the output of ``dars priors sh-probe FILE --json``),
+* :func:`toolkit.sh.read_sh_json`: ``{"coeffs": 9 x [r, g, b]}`` (the output of ``dars priors sh-probe FILE --json``),
   ``{"sh": ...}`` (a transforms JSON), or a bare 9 x 3 / 27 list.
 * :func:`sh_from_probe`: an HDR environment map (``.hdr`` / ``.exr``) projected with :func:`toolkit.sh.fit_sh_probe`.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import torch
 
-from toolkit._checks import DarsError, SceneError
-from toolkit.sh import GLTF_SH_SIGNS, SH_C0, SH_IRRADIANCE_BANDS, WORLD_TO_Y_UP, rotate_sh
+from toolkit._checks import DarsError
+from toolkit.sh import (GLTF_SH_SIGNS, SH_C0, SH_IRRADIANCE_BANDS, WORLD_TO_Y_UP, check_sh_coeffs, read_sh_json,
+                        rotate_sh)
 
-__all__ = ["DEFAULT_SH", "asset_sh", "sh_from_gltf_ibl", "load_sh_json", "sh_from_probe", "resolve_sh"]
+__all__ = ["DEFAULT_SH", "asset_sh", "sh_from_gltf_ibl", "sh_from_probe", "resolve_sh"]
 
 _BAND_OF_K = (0, 1, 1, 1, 2, 2, 2, 2, 2)
 
 DEFAULT_SH = np.zeros((9, 3))
 DEFAULT_SH[0] = 1.0 / SH_C0
 """Uniform white radiance 1 (irradiance π): the light used when an asset carries none."""
-
-
-def _check_sh(c: np.ndarray, where: str) -> np.ndarray:
-    c = np.asarray(c, dtype=np.float64)
-    if c.shape == (27,):
-        c = c.reshape(9, 3)
-    if c.shape != (9, 3):
-        raise DarsError(f"{where}: SH must be 9 x [r, g, b] (or 27 numbers), got shape {list(c.shape)}")
-    if not np.isfinite(c).all():
-        raise DarsError(f"{where}: SH contains NaN or inf")
-    return c
 
 
 def sh_from_gltf_ibl(light: dict) -> np.ndarray:
@@ -55,7 +44,7 @@ def sh_from_gltf_ibl(light: dict) -> np.ndarray:
     """
     if "irradianceCoefficients" not in light:
         raise DarsError("EXT_lights_image_based light has no irradianceCoefficients")
-    irr = _check_sh(light["irradianceCoefficients"], "EXT_lights_image_based irradianceCoefficients")
+    irr = check_sh_coeffs(light["irradianceCoefficients"], "EXT_lights_image_based irradianceCoefficients")
     scale = np.array([GLTF_SH_SIGNS[k] * SH_IRRADIANCE_BANDS[_BAND_OF_K[k]] for k in range(9)])
     radiance_gltf = irr / scale[:, None] * float(light.get("intensity", 1.0))
     q = np.asarray(light.get("rotation", [0.0, 0.0, 0.0, 1.0]), dtype=np.float64)
@@ -73,37 +62,10 @@ def sh_from_gltf_ibl(light: dict) -> np.ndarray:
 def asset_sh(asset) -> np.ndarray | None:
     """The SH light stored in a loaded GLB (:class:`export.gltf.GltfAsset`), or None when it has none."""
     if asset.sh is not None:
-        return _check_sh(asset.sh, "GLB extras.dars.sh")
+        return check_sh_coeffs(asset.sh, "GLB extras.dars.sh")
     if asset.ibl is not None and "irradianceCoefficients" in asset.ibl:
         return sh_from_gltf_ibl(asset.ibl)
     return None
-
-
-def load_sh_json(path: str | Path) -> np.ndarray:
-    """Read SH coefficients from a JSON file (module docstring lists the accepted forms).
-
-    Raises:
-        SceneError: missing or unreadable file, or no coefficients in it, naming the file.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise SceneError(f"SH JSON not found: {path}")
-    try:
-        obj = json.loads(path.read_text())
-    except ValueError as e:
-        raise SceneError(f"{path} is not valid JSON: {e}") from e
-    if isinstance(obj, dict):
-        for key in ("coeffs", "sh", "l_env"):
-            if key in obj:
-                obj = obj[key]
-                break
-        else:
-            raise SceneError(f"{path}: no SH found; expected a 'coeffs' or 'sh' key (9 x [r, g, b]) "
-                             "as written by `dars priors sh-probe FILE --json`")
-    try:
-        return _check_sh(obj, str(path))
-    except (TypeError, ValueError) as e:
-        raise SceneError(f"{path}: {e}") from e
 
 
 def sh_from_probe(path: str | Path, layout: Literal["latlong", "angular"] = "latlong") -> np.ndarray:
@@ -128,7 +90,7 @@ def resolve_sh(asset, sh_json: str | Path | None = None, probe: str | Path | Non
     if sh_json is not None and probe is not None:
         raise DarsError("give either an SH JSON or an HDR probe, not both")
     if sh_json is not None:
-        return load_sh_json(sh_json), f"SH JSON {sh_json}"
+        return read_sh_json(sh_json), f"SH JSON {sh_json}"
     if probe is not None:
         return sh_from_probe(probe, probe_layout), f"probe {probe} ({probe_layout})"
     sh = asset_sh(asset)

@@ -10,8 +10,8 @@ The fragment shader calls ``dars_shade_pbr``, generated from :mod:`toolkit.shadi
 * Geometry is drawn as stored (glTF +y up); the camera is rotated into that frame (:mod:`viewers.camera`) and the
   shading normal and view direction are rotated back to the dars world (+z up) where the SH lives.
 * Output: ``lit`` = linear radiance × 2^exposure → clamp → sRGB; ``albedo`` = base colour in sRGB; ``roughness`` /
-  ``metallic`` = the value as grey; ``normals`` = world normal ``(n + 1)/2`` (as :func:`toolkit.preview.colourise_normals`);
-  ``semantics`` = :data:`toolkit.preview.LABEL_COLOURS` per semantic primitive (unlabelled black). Background: the SH
+  ``metallic`` = the value as grey; ``normals`` = world normal ``(n + 1)/2`` (as :func:`toolkit.visualise.colourise_normals`);
+  ``semantics`` = :data:`toolkit.visualise.LABEL_COLOURS` per semantic primitive (unlabelled black). Background: the SH
   environment's radiance along each view ray (``lit``) or a flat grey; alpha is 1 on the mesh, 0 elsewhere (the
   coverage mask of :class:`PreviewImage`).
 * No MSAA offscreen (one sample per pixel centre, like the field's renderer); the window asks for 4x MSAA.
@@ -29,10 +29,12 @@ from typing import Literal
 import numpy as np
 
 from export.gltf import WORLD_TO_GLTF, GltfAsset, load_glb
-from toolkit._checks import ConfigError, DarsError, SceneError
+from toolkit._checks import ConfigError, SceneError
+from toolkit.pinhole import PinholeCamera
 from toolkit.shading import ShadingConfig
 
-from .camera import ViewCamera, default_camera, gltf_c2w
+from .camera import default_camera, gltf_c2w, view_projection_gltf
+from .gl import create_headless_context
 from .shading_glsl import DFG_UNIFORM, GLSL_VERSION, dfg_texture_bytes, glsl_shading_source
 
 __all__ = ["MODES", "Mode", "PreviewConfig", "PreviewImage", "PreviewRenderer", "OffscreenPreview",
@@ -79,28 +81,12 @@ class PreviewImage:
 
     image: np.ndarray
     mask: np.ndarray
-    camera: ViewCamera
+    camera: PinholeCamera
     mode: str
 
     def to_float(self) -> np.ndarray:
         """float32 [H, W, 3] in [0, 1]."""
         return self.image.astype(np.float32) / 255.0
-
-
-def create_headless_context(require: int = 330):
-    """A standalone moderngl context on EGL (no display needed; Mesa llvmpipe without a GPU).
-
-    Raises:
-        DarsError: when no EGL/OpenGL 3.3 context can be created, saying which system packages provide it.
-    """
-    import moderngl
-
-    try:
-        return moderngl.create_standalone_context(backend="egl", require=require)
-    except Exception as e:  # moderngl raises plain Exception subclasses from glcontext
-        raise DarsError(f"could not create a headless OpenGL {require // 100}.{require % 100 // 10} context on EGL "
-                        f"({e}); install libegl1 libegl-mesa0 libgl1-mesa-dri (scripts/setup.sh does) or run "
-                        "under `xvfb-run -a`") from e
 
 
 def resolve_asset_path(path: str | Path) -> Path:
@@ -270,7 +256,7 @@ class PreviewRenderer:
                  shading: ShadingConfig = ShadingConfig()) -> None:
         import moderngl
 
-        from toolkit.preview import LABEL_COLOURS
+        from toolkit.visualise import LABEL_COLOURS
 
         from .lighting import resolve_sh
 
@@ -365,9 +351,9 @@ class PreviewRenderer:
 
     def set_sh(self, sh: np.ndarray) -> None:
         """Swap the SH light (relighting): float [9, 3] SPEC radiance SH, world frame (used from the next frame)."""
-        from .lighting import _check_sh
+        from toolkit.sh import check_sh_coeffs
 
-        self.sh = _check_sh(sh, "set_sh")
+        self.sh = check_sh_coeffs(sh, "set_sh")
 
     def release(self) -> None:
         """Free every GPU object (the context stays)."""
@@ -376,7 +362,7 @@ class PreviewRenderer:
         self._objects.clear()
 
     # ------------------------------------------------------------------------------------------------ drawing
-    def render(self, camera: ViewCamera, cfg: PreviewConfig = PreviewConfig(), framebuffer=None) -> None:
+    def render(self, camera: PinholeCamera, cfg: PreviewConfig = PreviewConfig(), framebuffer=None) -> None:
         """Draw one frame into ``framebuffer`` (default: the context's current one) with viewport = camera size."""
         import moderngl
 
@@ -384,7 +370,7 @@ class PreviewRenderer:
         fbo = framebuffer if framebuffer is not None else ctx.fbo
         fbo.use()
         fbo.viewport = (0, 0, camera.width, camera.height)
-        view_proj = camera.view_projection_gltf()
+        view_proj = view_projection_gltf(camera)
         gltf_to_world = WORLD_TO_GLTF.T
         exposure_scale = float(2.0 ** cfg.exposure)
         p, vao, bg, bg_vao = self._pipeline(cfg.shading)
@@ -467,7 +453,7 @@ class OffscreenPreview:
     def __exit__(self, *exc) -> None:
         self.release()
 
-    def default_camera(self, width: int = 1280, height: int = 720) -> ViewCamera:
+    def default_camera(self, width: int = 1280, height: int = 720) -> PinholeCamera:
         """A camera framing the asset (:func:`viewers.camera.default_camera`)."""
         return default_camera(self.asset.vertices, width, height)
 
@@ -482,18 +468,18 @@ class OffscreenPreview:
             self._size = (width, height)
         return self._fbo
 
-    def draw(self, camera: ViewCamera, cfg: PreviewConfig = PreviewConfig()) -> None:
+    def draw(self, camera: PinholeCamera, cfg: PreviewConfig = PreviewConfig()) -> None:
         """Render without reading back (benchmarks: follow with ``ctx.finish()``)."""
         self.renderer.render(camera, cfg, self._framebuffer(camera.width, camera.height))
 
-    def render(self, camera: ViewCamera, cfg: PreviewConfig = PreviewConfig()) -> PreviewImage:
+    def render(self, camera: PinholeCamera, cfg: PreviewConfig = PreviewConfig()) -> PreviewImage:
         """Render and read back one image."""
         self.draw(camera, cfg)
         raw = self._fbo.read(components=4, alignment=1)
         rgba = np.frombuffer(raw, np.uint8).reshape(camera.height, camera.width, 4)[::-1]
         return PreviewImage(np.ascontiguousarray(rgba[..., :3]), rgba[..., 3] > 127, camera, cfg.mode)
 
-    def measure_fps(self, camera: ViewCamera, cfg: PreviewConfig = PreviewConfig(), frames: int = 20,
+    def measure_fps(self, camera: PinholeCamera, cfg: PreviewConfig = PreviewConfig(), frames: int = 20,
                     warmup: int = 2) -> float:
         """Frames per second of :meth:`draw` + ``glFinish`` (no read-back)."""
         for _ in range(warmup):
@@ -517,7 +503,7 @@ class OffscreenPreview:
             self.ctx.release()
 
 
-def render_preview(asset: GltfAsset | str | Path, camera: ViewCamera | None = None,
+def render_preview(asset: GltfAsset | str | Path, camera: PinholeCamera | None = None,
                    cfg: PreviewConfig = PreviewConfig(), sh: np.ndarray | None = None) -> PreviewImage:
     """Render one headless preview image of a baked asset (creates and releases an EGL context).
 

@@ -258,7 +258,7 @@ def eval_glsl_shading(albedo: np.ndarray, roughness: np.ndarray, metallic: np.nd
 
     from toolkit._checks import check_shape
 
-    from .preview import create_headless_context
+    from .gl import create_headless_context
 
     n = check_shape(np.asarray(albedo), "N 3", "albedo")["N"]
     check_shape(np.asarray(roughness), f"{n}", "roughness")

@@ -39,8 +39,9 @@ import numpy as np
 
 from export.gltf import WORLD_TO_GLTF, load_glb
 from toolkit._checks import ConfigError, DarsError
+from toolkit.pinhole import PinholeCamera, look_at
 
-from .camera import ViewCamera, default_camera, look_at
+from .camera import default_camera
 
 __all__ = ["WebConfig", "WebExport", "export_web", "find_threejs", "vendor_threejs", "web_camera",
            "view_camera_from_web", "THREE_ENTRY_FILES"]
@@ -158,8 +159,8 @@ def vendor_threejs(three_dir: str | Path, out_dir: str | Path,
 
 
 # ========================================================================================================= cameras
-def web_camera(camera: ViewCamera, target: np.ndarray | None = None) -> dict:
-    """The page's initial view (three/glTF +y-up frame) from a :class:`ViewCamera` (world +z up).
+def web_camera(camera: PinholeCamera, target: np.ndarray | None = None) -> dict:
+    """The page's initial view (three/glTF +y-up frame) from a :class:`PinholeCamera` (world +z up).
 
     The page uses a centred principal point and square pixels; ``target`` (world) defaults to a point ahead of the
     camera at the asset-independent distance of 1/10 of ``far``.
@@ -174,12 +175,12 @@ def web_camera(camera: ViewCamera, target: np.ndarray | None = None) -> dict:
             "far": float(camera.far)}
 
 
-def view_camera_from_web(cam: dict, width: int, height: int) -> ViewCamera:
-    """The :class:`ViewCamera` (world +z up) the page shows for ``scene_light.json``'s ``camera`` at a viewport
+def view_camera_from_web(cam: dict, width: int, height: int) -> PinholeCamera:
+    """The :class:`PinholeCamera` (world +z up) the page shows for ``scene_light.json``'s ``camera`` at a viewport
     size — what three.js' ``PerspectiveCamera`` + ``lookAt`` give (used to compare the page with ``dars view``)."""
     back = lambda v: WORLD_TO_GLTF.T @ np.asarray(v, dtype=np.float64)  # noqa: E731
     f = 0.5 * height / np.tan(np.radians(cam["fov_y_deg"]) * 0.5)
-    return ViewCamera(look_at(back(cam["position"]), back(cam["target"])), f, f, width / 2, height / 2, width, height,
+    return PinholeCamera(look_at(back(cam["position"]), back(cam["target"])), f, f, width / 2, height / 2, width, height,
                       cam["near"], cam["far"])
 
 
@@ -191,7 +192,7 @@ def _xr_start(camera: dict, floor_y: float) -> dict:
 
 
 # ========================================================================================================== export
-def export_web(glb: str | Path, out_dir: str | Path, sh: np.ndarray | None = None, camera: ViewCamera | None = None,
+def export_web(glb: str | Path, out_dir: str | Path, sh: np.ndarray | None = None, camera: PinholeCamera | None = None,
                cfg: WebConfig = WebConfig(), three_dir: str | Path | None = None, source: str | None = None) -> WebExport:
     """Write the static WebXR page for a GLB (module docstring).
 
@@ -216,7 +217,9 @@ def export_web(glb: str | Path, out_dir: str | Path, sh: np.ndarray | None = Non
 
     from toolkit.shading import ShadingConfig, dfg_table
 
-    from .lighting import _check_sh, resolve_sh
+    from toolkit.sh import check_sh_coeffs
+
+    from .lighting import resolve_sh
     from .shading_glsl import glsl_shading_source
 
     if not np.isfinite(cfg.exposure):
@@ -233,7 +236,7 @@ def export_web(glb: str | Path, out_dir: str | Path, sh: np.ndarray | None = Non
     if sh is None:
         sh, default_source = resolve_sh(asset)
     else:
-        sh, default_source = _check_sh(sh, "export_web sh"), "given"
+        sh, default_source = check_sh_coeffs(sh, "export_web sh"), "given"
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     vendor = vendor_threejs(three, out / "vendor" / "three")

@@ -31,8 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from toolkit._checks import DarsError
+from toolkit.pinhole import PinholeCamera
 
-from .camera import OrbitController, ViewCamera, WalkController, default_camera
+from .camera import OrbitController, WalkController, default_camera
 from .preview import MODES, PreviewConfig
 
 __all__ = ["ViewerState", "run_window", "HELP"]
@@ -52,7 +53,7 @@ class ViewerState:
         speed: walk speed in metres per second.
     """
 
-    home: ViewCamera
+    home: PinholeCamera
     target: np.ndarray
     lights: list[tuple[str, np.ndarray]]
     cfg: PreviewConfig = field(default_factory=PreviewConfig)
@@ -74,12 +75,12 @@ class ViewerState:
         self.orbit = OrbitController.from_camera(self.home, self.target)
         self.walk = WalkController.from_camera(self.home, self.speed)
 
-    def camera(self, width: int, height: int) -> ViewCamera:
+    def camera(self, width: int, height: int) -> PinholeCamera:
         """The current view at a framebuffer size (square pixels, the home camera's vertical field of view)."""
         fov_y = 2.0 * math.atan(0.5 * self.home.height / self.home.fy)
         f = 0.5 * height / math.tan(0.5 * fov_y)
         c2w = self.orbit.c2w() if self.navigation == "orbit" else self.walk.c2w()
-        return ViewCamera(c2w, f, f, width / 2, height / 2, width, height, self.home.near, self.home.far)
+        return PinholeCamera(c2w, f, f, width / 2, height / 2, width, height, self.home.near, self.home.far)
 
     # ---------------------------------------------------------------------------------------------- lighting
     def current_sh(self) -> np.ndarray:
@@ -190,7 +191,7 @@ def _key_name(glfw, key: int) -> str | None:
     return None
 
 
-def run_window(asset, lights: list[tuple[str, np.ndarray]], camera: ViewCamera | None = None,
+def run_window(asset, lights: list[tuple[str, np.ndarray]], camera: PinholeCamera | None = None,
                cfg: PreviewConfig = PreviewConfig(), width: int = 1280, height: int = 720,
                screenshot_dir: str | Path = ".", max_frames: int | None = None, keys: tuple[str, ...] = (),
                log=print) -> list[Path]:

@@ -1,4 +1,5 @@
-"""Quick-look images: contact sheets of scenes, colour maps for labels, normals and scalar maps."""
+"""Quick-look images: contact sheets of scenes, colour maps for labels, normals and scalar maps, displayable
+render outputs. (The OpenGL preview of a baked asset is :mod:`viewers.preview`.)"""
 
 from __future__ import annotations
 
@@ -93,15 +94,19 @@ def contact_sheet(scene: Scene, out: Path, n: int = 6) -> Path:
     return out
 
 
-def render_output_images(outputs: dict[str, torch.Tensor], srgb: bool = True) -> dict[str, np.ndarray]:
-    """Turn :func:`toolkit.pipeline.render_image` outputs into displayable H-W-3 float images in [0, 1].
+def render_output_images(outputs, srgb: bool = True) -> dict[str, np.ndarray]:
+    """Turn render outputs — a :class:`toolkit.pipeline.RenderedImage` or a dict of [H, W(, C)] arrays by the same
+    names (e.g. :func:`export.infer.render_view`'s) — into displayable H-W-3 float images in [0, 1].
 
     ``rgb``/``albedo``/``diffuse``/``specular`` are linear and shown through the sRGB transfer (when ``srgb``);
     ``roughness``/``metallic``/``opacity`` as grey; ``normal`` as (n+1)/2; ``semantic`` from the argmax of the
     logits (black where opacity < 0.5); ``depth`` through a colour map; ``samples`` (samples per ray) likewise.
     """
+    if hasattr(outputs, "as_dict"):
+        outputs = outputs.as_dict()
+
     def to_np(t):
-        return t.detach().float().cpu().numpy()
+        return t.detach().float().cpu().numpy() if isinstance(t, torch.Tensor) else np.asarray(t, np.float32)
 
     enc = linear_to_srgb if srgb else (lambda x: x)
     imgs: dict[str, np.ndarray] = {}

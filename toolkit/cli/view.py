@@ -1,7 +1,8 @@
 """``dars view`` and ``dars export-web``: the moderngl preview (window or headless PNG) and the static WebXR page.
 
 The commands only parse, call :mod:`viewers` (imported inside the handlers, so ``dars --help`` stays fast and a
-missing optional dependency only affects these commands) and write outputs.
+missing optional dependency only affects these commands) and write outputs. A RUN given to ``export-web`` goes
+through :func:`toolkit.asset.build_asset` first.
 
 * ``dars view ASSET [--headless --out PNG] [--camera SCENE:SPLIT:INDEX] [--mode lit] [--sh JSON | --probe HDR]
   [--exposure EV] [--width W --height H] [--json]`` — ASSET is a ``.glb`` or an ``export-asset`` directory. Without
@@ -19,9 +20,8 @@ import sys
 import time
 from pathlib import Path
 
-from ._checks import DarsError
-
-__all__ = ["add_parser"]
+from .._checks import DarsError
+from .asset import add_bake_options, add_mesh_options, asset_config, export_glb
 
 
 def _add_light_options(q: argparse.ArgumentParser) -> None:
@@ -38,7 +38,6 @@ def _add_light_options(q: argparse.ArgumentParser) -> None:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    """Register ``view`` and ``export-web`` on the ``dars`` subparsers."""
     q = sub.add_parser("view", help="moderngl preview of a baked GLB (window, or --headless --out PNG)")
     q.add_argument("asset", help="a .glb file or an `export-asset` output directory (with scene.glb)")
     q.add_argument("--headless", action="store_true", help="render offscreen (EGL) to --out instead of a window")
@@ -59,10 +58,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     _add_light_options(q)
     q.add_argument("--title", default="dars — WebXR preview", help="page title")
     q.add_argument("--no-specular", action="store_true", help="diffuse SH lighting only")
-    from ._cli_asset import _add_bake_options, _add_mesh_options
-
-    _add_mesh_options(q)
-    _add_bake_options(q)
+    add_mesh_options(q)
+    add_bake_options(q)
     q.add_argument("--json", action="store_true", help="machine-readable result on stdout")
     q.set_defaults(func=cmd_export_web)
 
@@ -90,7 +87,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     from viewers.camera import default_camera
     from viewers.preview import PreviewConfig, resolve_asset_path
 
-    from .io import write_png
+    from ..io import write_png
 
     for name in ("width", "height"):
         v = getattr(args, name)
@@ -141,19 +138,13 @@ def _glb_for(source: Path, out: Path, args) -> tuple[Path, dict]:
     if (source / "scene.glb").is_file():
         return source / "scene.glb", {}
     if (source / "checkpoint.pt").is_file() and (source / "config.json").is_file():
-        from export.gltf import export_gltf
+        from ..asset import build_asset
 
-        from ._cli_asset import _load_field, bake_mesh, build_mesh
-
+        cfg = asset_config(args)
         print(f"[dars] {source} is a training run: exporting its asset first (mesh + bake)", file=sys.stderr)
-        density_fn, material_fn, aabb, sh, cameras = _load_field(str(source))
-        mesh, stats = build_mesh(density_fn, material_fn, aabb, cameras, args)
-        uvmesh, textures, bake_stats = bake_mesh(mesh, material_fn, args)
-        stats["bake"] = bake_stats
+        asset = build_asset(source, cfg)
         out.mkdir(parents=True, exist_ok=True)
-        glb = export_gltf(uvmesh, textures, out / "scene.glb", sh=sh,
-                          extras={"mesh_stats": {k: stats[k] for k in ("vertices", "faces", "area_m2", "method")}})
-        return glb, stats
+        return export_glb(asset, out / "scene.glb", sh=asset.sh), asset.stats
     raise DarsError(f"{source}: expected a .glb, an `export-asset` directory (with scene.glb) or a RUN directory "
                     "(with config.json and checkpoint.pt)")
 

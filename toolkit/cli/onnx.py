@@ -17,17 +17,11 @@ import json
 import sys
 from pathlib import Path
 
-from ._checks import DarsError
-
-__all__ = ["add_parser"]
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr)
+from .._checks import DarsError
+from ._common import log, print_json, set_threads
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    """Register ``export-onnx`` and ``infer``."""
     q = sub.add_parser("export-onnx", help="export a run for devices (field/segment/light ONNX + occupancy, "
                                            "background, metadata) with parity checks against torch")
     q.add_argument("run", help="RUN directory (output of `dars train`)")
@@ -66,12 +60,9 @@ def _parse_view(spec: str) -> tuple[str, int]:
 
 
 def cmd_export_onnx(args: argparse.Namespace) -> int:
-    import torch
-
     from export.field_onnx import FieldExportConfig, export_onnx_models
 
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     precision = tuple(p.strip() for p in args.precision.split(",") if p.strip())
     if "fp32" not in precision:
         precision = ("fp32",) + precision
@@ -79,10 +70,10 @@ def cmd_export_onnx(args: argparse.Namespace) -> int:
     cfg = FieldExportConfig(parity_split=split, parity_index=index, check_render=not args.no_render_check,
                             threads=args.threads, segmenter=args.segmenter, light_model=args.light_weights)
     rep = export_onnx_models(args.run, args.out, opset=args.opset, precision=precision, cfg=cfg,
-                             log=_log if not args.json else (lambda m: None))
+                             log=log if not args.json else (lambda m: None))
     d = rep.to_dict()
     if args.json:
-        sys.stdout.write(json.dumps(d, indent=2, default=str) + "\n")
+        print_json(d, default=str)
         return 0
     f = d["field"]
     print(f"wrote {rep.out_dir}: " + ", ".join(f"{k} ({v / 1e6:.2f} MB)" for k, v in d["files"].items()))
@@ -113,10 +104,8 @@ def _fmt(errs: dict) -> str:
 
 
 def _camera(spec: str):
-    import numpy as np
-
-    from export.infer import PinholeCamera
-    from .scene import load_scene
+    from ..pinhole import PinholeCamera
+    from ..scene import load_scene
 
     parts = spec.rsplit(":", 2)
     if len(parts) != 3 or not parts[2].isdigit():
@@ -126,28 +115,15 @@ def _camera(spec: str):
     if not 0 <= i < len(scene):
         raise DarsError(f"--camera {spec!r}: index {i} is out of range ({parts[0]} split {parts[1]!r} has "
                         f"{len(scene)} frames)")
-    c = scene.cameras
-    cam = PinholeCamera(c.c2w[i].numpy().astype(np.float32), float(c.fx[i]), float(c.fy[i]), float(c.cx[i]),
-                        float(c.cy[i]), int(c.width[i]), int(c.height[i]))
-    return cam, scene, i
+    return PinholeCamera.from_cameras(scene.cameras, i), scene, i
 
 
 def _read_sh(path: str | None):
     if path is None:
         return None
-    import numpy as np
+    from ..sh import read_sh_json
 
-    p = Path(path)
-    if not p.is_file():
-        raise DarsError(f"--sh {p}: file not found")
-    try:
-        d = json.loads(p.read_text())
-        coeffs = np.asarray(d["coeffs"] if isinstance(d, dict) else d, np.float32)
-    except (ValueError, KeyError) as e:
-        raise DarsError(f"--sh {p}: expected JSON {{'coeffs': [[r, g, b] x 9]}} ({e})") from e
-    if coeffs.shape != (9, 3):
-        raise DarsError(f"--sh {p}: coeffs must be 9 x 3, got {list(coeffs.shape)}")
-    return coeffs
+    return read_sh_json(path).astype("float32")
 
 
 def cmd_infer(args: argparse.Namespace) -> int:
@@ -174,11 +150,11 @@ def _infer_camera(args, threads) -> int:
     import time
 
     import numpy as np
-    import torch
 
     from export import infer
-    from .io import write_png
-    from .preview import render_output_images
+
+    from ..io import write_png
+    from ..visualise import render_output_images
 
     if not args.out:
         raise DarsError("--camera needs --out PNG (the rendered colour; other outputs are written beside it)")
@@ -187,8 +163,7 @@ def _infer_camera(args, threads) -> int:
     t0 = time.perf_counter()
     outs = infer.render_view(model, cam, sh=_read_sh(args.sh))
     seconds = time.perf_counter() - t0
-    imgs = render_output_images({k: torch.from_numpy(v) for k, v in outs.items()},
-                                srgb=bool(model.metadata.get("srgb", True)))
+    imgs = render_output_images(outs, srgb=bool(model.metadata.get("srgb", True)))
     out = Path(args.out)
     if out.suffix.lower() != ".png":
         raise DarsError(f"--out {out}: give a .png file")
@@ -215,17 +190,18 @@ def _infer_camera(args, threads) -> int:
 
 
 def _infer_segment(args, threads) -> int:
+    import numpy as np
+
     from export import infer
-    from .io import write_png
-    from .preview import colourise_labels
+
+    from ..io import write_png
+    from ..visualise import colourise_labels
 
     labels = infer.infer_segment(args.dir, args.segment, threads)
     out_dir = Path(args.out) if args.out else None
     files = []
     counts = []
     for ph, lab in zip(args.segment, labels):
-        import numpy as np
-
         counts.append({infer.SEMANTIC_CLASSES[c]: int((lab == c).sum()) for c in range(len(infer.SEMANTIC_CLASSES))})
         if out_dir is not None:
             stem = Path(ph).stem

@@ -1,16 +1,14 @@
-"""``dars train`` and ``dars render``."""
+"""``dars train`` (the two-stage trainer), ``dars render`` (every decomposed output of a run as images) and
+``dars relight`` (re-render with another SH light / HDR probe and per-class material edits)."""
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-import numpy as np
-import torch
-
-from ._checks import DarsError
+from .._checks import DarsError
+from ._common import set_threads
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -76,15 +74,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.set_defaults(func=cmd_relight)
 
 
-def _threads(n: int) -> None:
-    if n > 0:
-        torch.set_num_threads(n)
-
-
 def cmd_train(args: argparse.Namespace) -> int:
-    from .train import make_config, train
+    from ..train import make_config, train
 
-    _threads(args.threads)
+    set_threads(args.threads)
     if not args.resume and not args.scene:
         raise DarsError("give a SCENE (or --resume an existing run)")
     if not args.resume and not args.minutes and not args.steps:
@@ -118,73 +111,29 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def orbit_cameras(scene, n: int):
-    """``n`` cameras on a circle around the scene box centre, looking at it (world up +z), at the mean
-    training-camera distance and elevation."""
-    from .scene import Cameras
-
-    centre = scene.aabb.mean(0)
-    o = scene.cameras.origins
-    rel = o - centre
-    radius = float(rel[:, :2].norm(dim=-1).mean())
-    height = float(rel[:, 2].mean())
-    c2ws = []
-    for k in range(n):
-        a = 2 * np.pi * k / n
-        pos = centre + torch.tensor([radius * np.cos(a), radius * np.sin(a), height], dtype=torch.float32)
-        fwd = torch.nn.functional.normalize(centre - pos, dim=0)
-        right = torch.nn.functional.normalize(torch.linalg.cross(fwd, torch.tensor([0.0, 0, 1])), dim=0)
-        up = torch.linalg.cross(right, fwd)
-        m = torch.eye(4)
-        m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, up, -fwd, pos
-        c2ws.append(m)
-    c = scene.cameras
-    rep = lambda t: t[:1].repeat(n)  # noqa: E731
-    return Cameras(torch.stack(c2ws), rep(c.fx), rep(c.fy), rep(c.cx), rep(c.cy), rep(c.width), rep(c.height))
-
-
 def _cameras_for(args, run):
-    from .scene import load_scene
+    """(cameras, file keys) of ``--cameras FILE``, ``--orbit N`` or the run's scene ``--split``."""
+    from ..cameras import orbit_cameras
+    from ..scene import load_scene
 
     if getattr(args, "cameras", None):
         scene = load_scene(args.cameras, "all")
     elif getattr(args, "orbit", 0):
-        scene = None
+        cams = orbit_cameras(run.train_scene.cameras, run.train_scene.aabb, args.orbit)
+        return cams, [f"orbit_{i:03d}" for i in range(len(cams))]
     else:
         scene = load_scene(run.scene_path, args.split)
-    cams = orbit_cameras(run.train_scene, args.orbit) if scene is None else scene.cameras
-    keys = [f"orbit_{i:03d}" for i in range(len(cams))] if scene is None else [f.key for f in scene.frames]
-    n = len(cams) if not args.limit else min(args.limit, len(cams))
-    return cams, keys, n
-
-
-def _render_views(run, cams, keys, n, out: Path, hook=None, quiet=False, l_env=None) -> list[str]:
-    from tqdm import tqdm
-
-    from .io import write_png
-    from .pipeline import render_image
-    from .preview import render_output_images
-
-    written = []
-    for i in tqdm(range(n), desc="render", file=sys.stderr, disable=quiet):
-        outs = render_image(run.field, cams, i, run.cfg.render_sampler, run.occupancy,
-                            run.l_env if l_env is None else l_env, run.background, run.train_scene.aabb,
-                            run.cfg.shading, run.dars_for(cams.c2w[i]), near=run.train_scene.near,
-                            far=run.train_scene.far, deferred=run.cfg.deferred, outputs_hook=hook)
-        for name, img in render_output_images(outs, srgb=run.train_scene.srgb).items():
-            p = out / f"{keys[i]}_{name}.png"
-            write_png(p, img)
-            written.append(str(p))
-    return written
+    return scene.cameras, [f.key for f in scene.frames]
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from .train import load_run
+    from ..train.run import load_run, render_views
 
     run = load_run(args.run, args.checkpoint)
-    cams, keys, n = _cameras_for(args, run)
+    cams, keys = _cameras_for(args, run)
     out = Path(args.out)
-    written = _render_views(run, cams, keys, n, out, quiet=args.json)
+    n = len(cams) if not args.limit else min(args.limit, len(cams))
+    written = render_views(run, cams, keys, out, limit=args.limit, progress=not args.json)
     if args.json:
         print(json.dumps({"views": n, "files": written}))
     else:
@@ -193,9 +142,12 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_relight(args: argparse.Namespace) -> int:
-    from .relight import parse_material_edit, relight_hook
-    from .sh import fit_sh_probe, read_envmap, rotation_x
-    from .train import load_run
+    import torch
+
+    from ..io import write_json
+    from ..relight import parse_material_edit, relight_hook
+    from ..train.run import load_run, render_views
+    from ..sh import fit_sh_probe, read_envmap, read_sh_json, rotation_x
 
     if not args.probe and not args.sh and not args.edit:
         raise DarsError("give a new light (--probe HDR or --sh JSON) and/or material edits (--edit CLASS:KEY=VALUE)")
@@ -208,23 +160,15 @@ def cmd_relight(args: argparse.Namespace) -> int:
         rot = rotation_x(args.probe_rotate_x) if args.probe_rotate_x else None
         new_sh = fit_sh_probe(env, layout=args.layout, rotation=rot).coeffs.float()
     elif args.sh:
-        p = Path(args.sh)
-        if not p.is_file():
-            raise DarsError(f"--sh {p}: file not found")
-        try:
-            d = json.loads(p.read_text())
-            new_sh = torch.tensor(d["coeffs"] if isinstance(d, dict) else d, dtype=torch.float32).reshape(9, 3)
-        except (KeyError, ValueError, RuntimeError) as e:
-            raise DarsError(f"--sh {p}: expected {{\"coeffs\": [[r, g, b] x 9]}} or a 9x3 list ({e})") from e
+        new_sh = torch.from_numpy(read_sh_json(args.sh)).float()
     if new_sh is not None:
         new_sh = new_sh * args.intensity
     edits = [parse_material_edit(e) for e in (args.edit or [])]
     hook = relight_hook(run.l_env, new_sh, edits, args.residual)
-    cams, keys, n = _cameras_for(args, run)
+    cams, keys = _cameras_for(args, run)
     out = Path(args.out)
-    written = _render_views(run, cams, keys, n, out, hook=hook, quiet=args.json)
-    from .io import write_json
-
+    n = len(cams) if not args.limit else min(args.limit, len(cams))
+    written = render_views(run, cams, keys, out, limit=args.limit, outputs_hook=hook, progress=not args.json)
     write_json(out / "relight.json", {"run": str(args.run), "sh": None if new_sh is None else new_sh.tolist(),
                                       "original_sh": run.l_env.tolist(), "residual": args.residual,
                                       "edits": [e.__dict__ for e in edits]})

@@ -3,13 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
 
-import torch
-
-from ._checks import DarsError
+from .._checks import DarsError
+from ._common import log, print_json, set_threads
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -37,7 +34,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--minutes", type=float, default=0.0, help="wall-clock training budget per variant")
     g.add_argument("--steps", type=int, default=0, help="training steps per variant")
     q.add_argument("--seed", type=int, default=0)
-    from .ablation import VARIANTS
+    from ..ablation import VARIANTS  # imports nothing heavy
 
     q.add_argument("--variants", nargs="+", choices=list(VARIANTS), help="subset of variants (default: all six)")
     q.add_argument("--split", default="test", help="split to evaluate")
@@ -52,17 +49,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.set_defaults(func=cmd_ablate)
 
 
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr)
-
-
 def cmd_eval(args: argparse.Namespace) -> int:
-    from .evaluate import EvalConfig, evaluate_run
-    from .report import headline_text, write_eval_report
-    from .train import load_run
+    from ..evaluate import EvalConfig, evaluate_run
+    from ..report import headline_text, write_eval_report
+    from ..train.run import load_run
 
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     run_dir = Path(args.run)
     if not run_dir.is_dir():
         raise DarsError(f"{run_dir} is not a directory; give the output directory of `dars train SCENE --out RUN`")
@@ -73,12 +65,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     cfg = EvalConfig(limit=args.limit, lpips_weights=args.lpips_weights, reference_mesh=args.reference_mesh,
                      mesh_resolution=args.mesh_resolution, lux_factor=args.lux_factor, progress=not (args.quiet or args.json))
     run = load_run(run_dir, args.checkpoint)
-    result = evaluate_run(run, args.split, cfg, log=_log)
+    result = evaluate_run(run, args.split, cfg, log=log)
     out = Path(args.out) if args.out else run_dir / "eval"
     written = write_eval_report(result, out)
     doc = result.to_json()
     if args.json:
-        sys.stdout.write(json.dumps(doc, indent=2) + "\n")
+        print_json(doc)
         return 0
     print(f"{run_dir} — split '{args.split}', {doc['eval']['views']} views, step {doc['eval']['checkpoint_step']}")
     print(headline_text(doc, doc["unavailable"]))
@@ -87,12 +79,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
-    from .ablation import run_ablation
-    from .evaluate import EvalConfig
-    from .report import ABLATION_COLUMNS, format_metric
+    from ..ablation import run_ablation
+    from ..evaluate import EvalConfig
+    from ..report import ablation_text
 
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     if args.steps < 0 or args.minutes < 0 or not (args.steps or args.minutes):
         raise DarsError("give a positive training budget per variant: --steps N or --minutes M")
     if args.limit < 0:
@@ -101,16 +92,11 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     res = run_ablation(args.scene, args.out, preset=args.preset, minutes=args.minutes, steps=args.steps, seed=args.seed,
                        variants=args.variants, overrides=overrides,
                        eval_cfg=EvalConfig(limit=args.limit, lpips_weights=args.lpips_weights), split=args.split,
-                       progress_bar=not (args.quiet or args.json), log=_log, priors_root=args.priors)
+                       progress_bar=not (args.quiet or args.json), log=log, priors_root=args.priors)
     doc = res.to_json()
     if args.json:
-        sys.stdout.write(json.dumps(doc, indent=2) + "\n")
+        print_json(doc)
         return 0
-    titles = ["variant"] + [t for _, t, _, _ in ABLATION_COLUMNS]
-    rows = [[v["label"]] + [format_metric(k, v["metrics"][k]) for k, _, _, _ in ABLATION_COLUMNS]
-            for v in doc["variants"]]
-    widths = [max(len(r[j]) for r in [titles] + rows) for j in range(len(titles))]
-    for r in [titles] + rows:
-        print("  ".join(c.ljust(w) if j == 0 else c.rjust(w) for j, (c, w) in enumerate(zip(r, widths))))
+    print(ablation_text(doc))
     print(f"wrote {Path(args.out) / 'ablation.md'} and {Path(args.out) / 'ablation.json'}")
     return 0

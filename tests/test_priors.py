@@ -1,0 +1,83 @@
+"""toolkit.priors: where labels come from (labels_for), the trainer's reader (read_priors), the output folder."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from _synthetic_gallery import write_scene
+
+from toolkit._checks import DarsError
+from toolkit.io import write_png
+from toolkit.priors import OutputDir, labels_for, prepare_out_dir, priors_path, read_priors
+from toolkit.scene import load_scene
+
+
+@pytest.fixture
+def labelled(tmp_path):
+    return load_scene(write_scene(tmp_path / "lab", n_train=3, n_test=1, size=16), "train")
+
+
+@pytest.fixture
+def bare(tmp_path):
+    return load_scene(write_scene(tmp_path / "bare", n_train=3, n_test=1, size=16, with_labels=False), "train")
+
+
+def _predict(scene, folder, frames=None, value=2):
+    for i in range(len(scene)) if frames is None else frames:
+        write_png(folder / f"{scene.frames[i].key}.png", np.full((16, 16), value, np.uint8))
+
+
+def test_labels_for_sources(labelled, bare, tmp_path):
+    lab, src = labels_for(labelled, "auto", None)
+    assert src == "scene" and lab.shape == (3, 16, 16) and lab.dtype == torch.int64
+    assert labels_for(labelled, "none", None) == (None, "none")
+    seg = tmp_path / "seg"
+    assert labels_for(bare, "auto", seg) == (None, "none")  # no predictions yet
+    _predict(bare, seg, frames=[0, 1])
+    assert labels_for(bare, "auto", seg) == (None, "none")  # all frames or none: frame 2 has no prediction
+    lab, src = labels_for(bare, "auto", seg, frames=[1])  # one frame: its prediction
+    assert src == "segment" and lab.shape == (1, 16, 16) and int(lab.max()) == 2
+    with pytest.raises(DarsError, match=r"frame 2 .* has no segment labels"):
+        labels_for(bare, "segment", seg)
+    with pytest.raises(DarsError, match=r"frame 0 .* has no scene labels"):
+        labels_for(bare, "scene", seg)
+    _predict(labelled, seg, value=5)
+    assert labels_for(labelled, "segment", seg)[1] == "segment"  # an explicit source wins over the scene's labels
+    assert int(labels_for(labelled, "segment", seg)[0].max()) == 5
+
+
+def test_read_priors_reads_every_stage(bare, tmp_path):
+    root = tmp_path / "priors"
+    p = read_priors(bare, root)
+    assert p.labels is None and p.labels_source == "none" and p.weights is None and p.light is None
+    assert read_priors(bare, root, labels=None).labels_source == "off"
+    _predict(bare, root / "segment")
+    (root / "weights").mkdir(parents=True)
+    for i, f in enumerate(bare.frames):
+        np.save(root / "weights" / f"{f.key}.npy", np.full((16, 16), 0.25 * i, np.float16))
+    (root / "weights" / "weights.json").write_text(json.dumps({"images": [{"key": bare.frames[1].key,
+                                                                             "distortion_loss": 0.5}]}))
+    (root / "light").mkdir()
+    (root / "light" / "light.json").write_text(json.dumps({"coeffs": np.arange(27).reshape(9, 3).tolist()}))
+    p = read_priors(bare, root)
+    assert p.labels.dtype == torch.uint8 and p.labels_source == f"predicted ({root / 'segment'})"
+    assert p.weights.shape == (3, 16, 16) and float(p.weights[2].max()) == 0.5
+    assert p.distortion.tolist() == [0.0, 0.5, 0.0] and p.weights_source == f"loaded ({root / 'weights'})"
+    assert p.light.shape == (9, 3) and float(p.light[8, 2]) == 26.0
+    assert read_priors(bare, root, weights=False).weights is None
+    assert priors_path(bare, "light", root) == root / "light"
+    assert priors_path(bare, "light") == bare.priors_dir("light")
+
+
+def test_output_dir_keeps_user_files(bare, tmp_path):
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "mine.txt").write_text("user")
+    with pytest.raises(DarsError, match="refusing to overwrite files dars did not write"):
+        prepare_out_dir(bare, "weights", out, ["mine.txt"])
+    d = prepare_out_dir(bare, "weights", out, ["ours.txt"])
+    d.file("ours.txt").write_text("dars")
+    d.finish()
+    assert json.loads((out / "manifest.json").read_text())["files"] == ["ours.txt"]
+    assert isinstance(prepare_out_dir(bare, "weights", out, ["ours.txt"]), OutputDir)  # ours: may be rewritten

@@ -1,0 +1,244 @@
+"""Stage 13 — a trained field → a baked PBR asset: extract → clean → simplify → colour → unwrap → bake.
+
+:func:`build_asset` runs the whole chain with one frozen :class:`AssetConfig` (what ``dars export-asset`` does before
+it writes the GLB with :func:`export.gltf.export_gltf`); :func:`build_mesh` and :func:`bake_mesh` are its two halves
+(``dars mesh``, ``dars bake``). The field comes as callables (:class:`toolkit.train.run.FieldCallables`: density,
+materials, box, SH light, training cameras), so these functions never own the model.
+
+Example:
+    >>> asset = build_asset("out/run", AssetConfig(resolution=128, texture=512))   # doctest: +SKIP
+    >>> asset.mesh.num_faces, asset.textures.base_color.shape                     # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from ._checks import ConfigError, DarsError
+from .bake import PBRTextures, UVMesh
+from .io import atomic_write, write_png
+from .mesh import Mesh
+from .train.run import FieldCallables, Run, field_callables
+
+__all__ = ["AssetConfig", "Asset", "build_asset", "build_mesh", "bake_mesh", "asset_field", "write_textures",
+           "write_uv_obj"]
+
+
+@dataclass(frozen=True)
+class AssetConfig:
+    """Options of the mesh and bake stages (the ``dars mesh`` / ``bake`` / ``export-asset`` options, same defaults).
+
+    Every value is checked here, before any work, and errors name the command-line option.
+    """
+
+    method: Literal["mc", "tsdf"] = "mc"
+    """``mc``: marching cubes on density; ``tsdf``: TSDF fusion of depth maps rendered at the training cameras."""
+    resolution: int = 256
+    """Grid cells along the longest box edge (mc), or the TSDF voxel = edge / resolution (tsdf)."""
+    level: float | None = None
+    """Density iso-level in 1/m (None: from the training rays, see ``level_quantile``)."""
+    level_quantile: float = 0.1
+    """Without ``level``: the quantile of σ where the training rays cross half-transmittance, capped at ln 2 / voxel
+    (0: the plain half-opacity rule ln 2 / voxel)."""
+    faces: int = 100_000
+    """Simplify to this many faces (0: keep all)."""
+    simplify: Literal["fast", "quality"] = "fast"
+    """fast-simplification, or pymeshlab quadric edge collapse."""
+    min_component: float = 0.05
+    """Drop connected components smaller than this fraction of the largest (0: keep all)."""
+    keep_unseen: bool = False
+    """Keep faces that no training camera sees."""
+    depth_samples: int = 256
+    """Samples per ray of the ``tsdf`` depth maps."""
+    texture: int = 1024
+    """Texture size in texels (square)."""
+    supersample: int = 1
+    """Bake at this multiple of ``texture`` and box-filter down (1 or 2)."""
+    ao_samples: int = 0
+    """Rays per texel for ambient occlusion (0: none)."""
+    device: str = "cpu"
+    """Device the field is queried on."""
+
+    def __post_init__(self):
+        if self.method not in ("mc", "tsdf"):
+            raise ConfigError(f"--method {self.method!r}: choose mc or tsdf")
+        if self.resolution < 8:
+            raise ConfigError(f"--resolution {self.resolution} is too small (use ≥ 8)")
+        if self.level is not None and not math.isfinite(self.level):
+            raise ConfigError(f"--level {self.level} must be a finite density (1/m)")
+        if not 0.0 <= self.level_quantile <= 1.0:
+            raise ConfigError(f"--level-quantile {self.level_quantile} must be in [0, 1]")
+        if self.faces < 0:
+            raise ConfigError(f"--faces {self.faces} must be ≥ 0 (0 keeps every face)")
+        if self.simplify not in ("fast", "quality"):
+            raise ConfigError(f"--simplify {self.simplify!r}: choose fast or quality")
+        if not 0.0 <= self.min_component <= 1.0:
+            raise ConfigError(f"--min-component {self.min_component} must be in [0, 1]")
+        if self.depth_samples < 1:
+            raise ConfigError(f"--depth-samples {self.depth_samples} must be ≥ 1")
+        if not 16 <= self.texture <= 16384:
+            raise ConfigError(f"--texture {self.texture} must be ≥ 16 and ≤ 16384 (texels)")
+        if self.supersample not in (1, 2):
+            raise ConfigError(f"--supersample {self.supersample}: choose 1 or 2")
+        if self.ao_samples < 0:
+            raise ConfigError(f"--ao-samples {self.ao_samples} must be ≥ 0")
+
+
+@dataclass
+class Asset:
+    """A baked asset (:func:`build_asset`).
+
+    Attributes:
+        mesh: the cleaned, simplified mesh with vertex colours (linear albedo) and labels (``mesh.ply``).
+        uvmesh: the unwrapped mesh with per-face labels (what the GLB stores).
+        textures: base colour, ORM and normal maps.
+        sh: float [9, 3] the run's SH light (SPEC convention), or None.
+        stats: ``mesh_stats.json``: the mesh half's statistics, with the bake's under ``bake``.
+    """
+
+    mesh: Mesh
+    uvmesh: UVMesh
+    textures: PBRTextures
+    sh: Any
+    stats: dict
+
+    def gltf_extras(self) -> dict:
+        """The statistics stored in the GLB's ``extras.dars``."""
+        return {"mesh_stats": {k: self.stats[k] for k in ("vertices", "faces", "area_m2", "method")}}
+
+
+def asset_field(run: str | Path | Run | FieldCallables) -> FieldCallables:
+    """The field callables of a run directory, a loaded :class:`~toolkit.train.run.Run`, or callables as they are.
+
+    Raises:
+        DarsError: ``run`` is a path that is not a directory (or not a training run).
+    """
+    if isinstance(run, FieldCallables):
+        return run
+    if isinstance(run, Run):
+        d, m = field_callables(run)
+        return FieldCallables(d, m, run.train_scene.aabb.clone(), run.l_env.detach().cpu().clone(),
+                              run.train_scene.cameras)
+    run_dir = Path(run)
+    if not run_dir.is_dir():
+        raise DarsError(f"RUN directory not found: {run_dir} (give the --out directory of `dars train`)")
+    from .train import run as run_module  # looked up at call time: tests stand a fake field in for it
+
+    return FieldCallables(*run_module.load_field_callables(run_dir))
+
+
+def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple[Mesh, dict]:
+    """The mesh half: extract (marching cubes or TSDF), drop floaters and unseen faces, simplify, colour the vertices.
+
+    Returns:
+        (mesh, statistics): ``method``, ``resolution``, ``level`` / ``level_from_rays`` (mc), timings, face counts
+        after each step, ``simplify`` (when simplified), ``vertices``, ``faces``, ``bounds``, ``area_m2``.
+
+    Raises:
+        DarsError: the field gives an empty mesh, or ``tsdf`` without training cameras.
+    """
+    from .mesh import (DepthRenderConfig, MeshConfig, TsdfConfig, extract_mesh, fuse_tsdf, grid_spec, level_from_rays,
+                       query_vertex_attributes, remove_floaters, remove_unseen_faces, render_depth, simplify_mesh)
+
+    density_fn, material_fn, aabb, _, cameras = field
+    stats: dict = {"method": cfg.method, "resolution": cfg.resolution}
+    t0 = time.perf_counter()
+    box = np.asarray(aabb.detach().cpu().numpy() if hasattr(aabb, "detach") else aabb, dtype=np.float64)
+    if cfg.method == "mc":
+        level = cfg.level
+        if level is None and cfg.level_quantile > 0 and cameras is not None:
+            voxel, _ = grid_spec(box, cfg.resolution)  # the voxel extract_mesh will use
+            level, stats["level_from_rays"] = level_from_rays(density_fn, cameras, box, voxel,
+                                                              quantile=cfg.level_quantile, device=cfg.device)
+        mesh = extract_mesh(density_fn, box, MeshConfig(resolution=cfg.resolution, level=level, device=cfg.device))
+        stats["level"] = level
+    else:
+        if cameras is None:
+            raise DarsError("--method tsdf needs the training cameras, but the RUN's field loader returned none")
+        depths = render_depth(density_fn, cameras, box, DepthRenderConfig(samples=cfg.depth_samples, device=cfg.device))
+        voxel = float((box[1] - box[0]).max()) / cfg.resolution
+        mesh = fuse_tsdf(depths, cameras, cfg=TsdfConfig(voxel_size=voxel, depth_max=float(np.linalg.norm(box[1] - box[0])) * 4))
+    stats["extract_seconds"] = round(time.perf_counter() - t0, 3)
+    stats["faces_extracted"] = mesh.num_faces
+    if mesh.num_faces == 0:
+        raise DarsError("the field produced an empty mesh (density never reaches the iso-level inside the box); "
+                        "try a lower --level or check the RUN")
+    if cfg.min_component > 0:
+        mesh = remove_floaters(mesh, min_fraction=cfg.min_component)
+    if cameras is not None and not cfg.keep_unseen:
+        mesh = remove_unseen_faces(mesh, cameras)
+    stats["faces_cleaned"] = mesh.num_faces
+    if cfg.faces and mesh.num_faces > cfg.faces:
+        mesh, report = simplify_mesh(mesh, cfg.faces, method=cfg.simplify)
+        stats["simplify"] = report.to_dict()
+    mesh = query_vertex_attributes(mesh, material_fn, device=cfg.device)
+    stats.update(vertices=mesh.num_vertices, faces=mesh.num_faces, bounds=mesh.bounds.tolist(),
+                 area_m2=round(mesh.area(), 6))
+    return mesh, stats
+
+
+def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig()) -> tuple[UVMesh, PBRTextures, dict]:
+    """The bake half: UV-unwrap ``mesh``, label its faces and bake PBR textures from ``material_fn``.
+
+    Returns:
+        (uvmesh, textures, statistics ``texture``, ``supersample``, ``uv_vertices``, timings, ``chart_coverage``,
+        ``defaults``).
+    """
+    from .bake import BakeConfig, UnwrapConfig, bake_pbr_textures, label_faces, unwrap_uv
+
+    t0 = time.perf_counter()
+    uvmesh = unwrap_uv(mesh, UnwrapConfig(texture_size=cfg.texture))
+    t1 = time.perf_counter()
+    uvmesh = label_faces(uvmesh, material_fn, device=cfg.device)
+    textures = bake_pbr_textures(uvmesh, material_fn, BakeConfig(size=cfg.texture, supersample=cfg.supersample,
+                                                                  ao_samples=cfg.ao_samples, device=cfg.device))
+    stats = {"texture": cfg.texture, "supersample": cfg.supersample, "uv_vertices": uvmesh.num_vertices,
+             "unwrap_seconds": round(t1 - t0, 3), "bake_seconds": round(time.perf_counter() - t1, 3),
+             "chart_coverage": round(float(textures.mask.mean()), 4), "defaults": list(textures.defaults)}
+    return uvmesh, textures, stats
+
+
+def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = AssetConfig()) -> Asset:
+    """Field → mesh → baked textures: :func:`build_mesh` then :func:`bake_mesh`.
+
+    Args:
+        run: a run directory, a loaded :class:`~toolkit.train.run.Run` or :class:`~toolkit.train.run.FieldCallables`.
+        cfg: the options.
+
+    Raises:
+        DarsError: no such run, or an empty mesh.
+    """
+    field = asset_field(run)
+    mesh, stats = build_mesh(field, cfg)
+    uvmesh, textures, bake_stats = bake_mesh(mesh, field.material_fn, cfg)
+    stats["bake"] = bake_stats
+    return Asset(mesh, uvmesh, textures, field.sh, stats)
+
+
+def write_textures(textures: PBRTextures, out: str | Path) -> None:
+    """Write ``base_color.png``, ``orm.png`` and ``normal.png`` into ``out``."""
+    out = Path(out)
+    write_png(out / "base_color.png", textures.base_color)
+    write_png(out / "orm.png", textures.orm)
+    write_png(out / "normal.png", textures.normal)
+
+
+def write_uv_obj(uvmesh: UVMesh, path: str | Path) -> None:
+    """Write the unwrapped mesh as OBJ (world +z up, metres; ``vt`` in OBJ convention, v up), atomically."""
+    buf = io.StringIO()
+    buf.write("# dars bake: world +z up, metres; vt in OBJ convention (v up)\n")
+    np.savetxt(buf, uvmesh.vertices, fmt="v %.6f %.6f %.6f")
+    uv = np.stack([uvmesh.uvs[:, 0], 1.0 - uvmesh.uvs[:, 1]], 1)
+    np.savetxt(buf, uv, fmt="vt %.6f %.6f")
+    np.savetxt(buf, uvmesh.normals, fmt="vn %.6f %.6f %.6f")
+    f = uvmesh.faces + 1
+    np.savetxt(buf, np.repeat(f, 3, axis=1), fmt="f %d/%d/%d %d/%d/%d %d/%d/%d")
+    with atomic_write(path, "w") as fh:
+        fh.write(buf.getvalue())

@@ -1,0 +1,7 @@
+"""``python -m toolkit.cli`` runs ``dars``."""
+
+import sys
+
+from . import main
+
+sys.exit(main())

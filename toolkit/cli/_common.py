@@ -1,0 +1,26 @@
+"""Helpers the command modules share (printing, threads)."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+SCENE_HELP = "scene directory, transforms JSON, COLMAP model or tiny-NeRF .npz"
+
+
+def print_json(obj, indent: int | None = 2, default=None) -> None:
+    """``obj`` as JSON on stdout (the only thing a ``--json`` command prints there)."""
+    sys.stdout.write(json.dumps(obj, indent=indent, default=default) + "\n")
+
+
+def log(msg: str) -> None:
+    """A progress or log line on stderr."""
+    print(msg, file=sys.stderr)
+
+
+def set_threads(n: int) -> None:
+    """``--threads N``: torch's CPU threads (0: leave the default)."""
+    if n > 0:
+        import torch
+
+        torch.set_num_threads(n)

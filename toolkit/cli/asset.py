@@ -1,0 +1,157 @@
+"""``dars mesh``, ``dars bake`` and ``dars export-asset``: trained field → mesh → baked PBR textures → GLB.
+
+The commands parse their options into a :class:`toolkit.asset.AssetConfig` (checked before any work), call
+:mod:`toolkit.asset` and write the files; the GLB is written by :func:`export.gltf.export_gltf`.
+
+Outputs:
+
+* ``dars mesh RUN [--out DIR]`` (default ``RUN/mesh``): ``mesh.ply`` (vertex colours = linear albedo, ``label``
+  property = semantic class) and ``mesh_stats.json``.
+* ``dars bake RUN [--mesh FILE] [--out DIR]`` (default ``RUN/bake``): ``base_color.png``, ``orm.png``,
+  ``normal.png``, ``mesh_uv.obj`` (the unwrapped mesh; OBJ UV convention, v up) and ``bake_stats.json``.
+* ``dars export-asset RUN --out DIR``: ``DIR/scene.glb`` (+ ``DIR/textures/*.png``, ``DIR/mesh.ply``,
+  ``DIR/mesh_stats.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .._checks import DarsError
+from ._common import print_json
+
+
+def add_mesh_options(q: argparse.ArgumentParser) -> None:
+    q.add_argument("--method", choices=("mc", "tsdf"), default="mc",
+                   help="marching cubes on density (default) or TSDF fusion of rendered depth maps")
+    q.add_argument("--resolution", type=int, default=256,
+                   help="grid cells along the longest box edge (mc), or the TSDF voxel = edge / resolution (tsdf)")
+    q.add_argument("--level", type=float, default=None,
+                   help="density iso-level in 1/m (default: from the training rays, see --level-quantile)")
+    q.add_argument("--level-quantile", type=float, default=0.1,
+                   help="without --level: the quantile of σ where the training rays cross half-transmittance, "
+                        "capped at ln 2 / voxel (0 = the plain half-opacity rule ln 2 / voxel)")
+    q.add_argument("--faces", type=int, default=100_000, help="simplify to this many faces (0 = keep all)")
+    q.add_argument("--simplify", choices=("fast", "quality"), default="fast",
+                   help="fast-simplification (default) or pymeshlab quadric edge collapse")
+    q.add_argument("--min-component", type=float, default=0.05,
+                   help="drop connected components smaller than this fraction of the largest (0 = keep all)")
+    q.add_argument("--keep-unseen", action="store_true", help="keep faces that no training camera sees")
+    q.add_argument("--depth-samples", type=int, default=256, help="samples per ray for --method tsdf depth maps")
+    q.add_argument("--device", default="cpu", help="device the field is queried on")
+
+
+def add_bake_options(q: argparse.ArgumentParser) -> None:
+    q.add_argument("--texture", type=int, default=1024, help="texture size in texels (square)")
+    q.add_argument("--supersample", type=int, default=1, choices=(1, 2), help="bake at 2x and box-filter down")
+    q.add_argument("--ao-samples", type=int, default=0, help="rays per texel for ambient occlusion (0 = none)")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    q = sub.add_parser("mesh", help="extract a mesh from a trained field (marching cubes or TSDF fusion)")
+    q.add_argument("run", help="RUN directory (output of `dars train`)")
+    q.add_argument("--out", default=None, help="output directory (default RUN/mesh)")
+    add_mesh_options(q)
+    q.add_argument("--json", action="store_true", help="machine-readable statistics on stdout")
+    q.set_defaults(func=cmd_mesh)
+
+    q = sub.add_parser("bake", help="UV-unwrap a mesh and bake PBR textures (base colour, ORM, normal) from the field")
+    q.add_argument("run", help="RUN directory (output of `dars train`)")
+    q.add_argument("--mesh", default=None, help="mesh to bake (default RUN/mesh/mesh.ply; run `dars mesh` first)")
+    q.add_argument("--out", default=None, help="output directory (default RUN/bake)")
+    add_bake_options(q)
+    q.add_argument("--device", default="cpu", help="device the field is queried on")
+    q.add_argument("--json", action="store_true", help="machine-readable statistics on stdout")
+    q.set_defaults(func=cmd_bake)
+
+    q = sub.add_parser("export-asset", help="field -> mesh -> baked textures -> DIR/scene.glb (glTF 2.0)")
+    q.add_argument("run", help="RUN directory (output of `dars train`)")
+    q.add_argument("--out", required=True, help="output directory (writes scene.glb, textures/, mesh stats)")
+    add_mesh_options(q)
+    add_bake_options(q)
+    q.add_argument("--no-sh", action="store_true", help="do not store the SH lighting in the GLB")
+    q.add_argument("--json", action="store_true", help="machine-readable statistics on stdout")
+    q.set_defaults(func=cmd_export_asset)
+
+
+def asset_config(args: argparse.Namespace):
+    """The :class:`toolkit.asset.AssetConfig` of the mesh / bake options (those a command has keep their defaults).
+
+    Raises:
+        ConfigError: an option is out of range (naming it), before any work.
+    """
+    from ..asset import AssetConfig
+
+    names = ("method", "resolution", "level", "level_quantile", "faces", "simplify", "min_component", "keep_unseen",
+             "depth_samples", "texture", "supersample", "ao_samples", "device")
+    return AssetConfig(**{k: getattr(args, k) for k in names if hasattr(args, k)})
+
+
+def export_glb(asset, path: Path, sh=None) -> Path:
+    """Write ``asset`` as a GLB with ``sh`` (float [9, 3] or None) and its mesh statistics."""
+    from export.gltf import export_gltf
+
+    return export_gltf(asset.uvmesh, asset.textures, path, sh=sh, extras=asset.gltf_extras())
+
+
+def _finish(args, stats: dict, human: str) -> int:
+    if args.json:
+        print_json(stats)
+    else:
+        print(human)
+    return 0
+
+
+def cmd_mesh(args: argparse.Namespace) -> int:
+    from ..asset import asset_field, build_mesh
+    from ..io import write_json
+    from ..mesh import save_mesh
+
+    cfg = asset_config(args)
+    field = asset_field(args.run)
+    out = Path(args.out) if args.out else Path(args.run) / "mesh"
+    mesh, stats = build_mesh(field, cfg)
+    save_mesh(mesh, out / "mesh.ply")
+    stats["mesh"] = str(out / "mesh.ply")
+    write_json(out / "mesh_stats.json", stats)
+    return _finish(args, stats, f"wrote {out / 'mesh.ply'} ({stats['vertices']} vertices, {stats['faces']} faces)")
+
+
+def cmd_bake(args: argparse.Namespace) -> int:
+    from ..asset import asset_field, bake_mesh, write_textures, write_uv_obj
+    from ..io import write_json
+    from ..mesh import load_mesh
+
+    cfg = asset_config(args)
+    field = asset_field(args.run)
+    mesh_path = Path(args.mesh) if args.mesh else Path(args.run) / "mesh" / "mesh.ply"
+    if not mesh_path.is_file():
+        raise DarsError(f"mesh not found: {mesh_path} (run `dars mesh {args.run}` first or pass --mesh FILE)")
+    mesh = load_mesh(mesh_path)
+    out = Path(args.out) if args.out else Path(args.run) / "bake"
+    uvmesh, textures, stats = bake_mesh(mesh, field.material_fn, cfg)
+    write_textures(textures, out)
+    write_uv_obj(uvmesh, out / "mesh_uv.obj")
+    stats["out"] = str(out)
+    write_json(out / "bake_stats.json", stats)
+    return _finish(args, stats, f"wrote {out}/base_color.png, orm.png, normal.png, mesh_uv.obj")
+
+
+def cmd_export_asset(args: argparse.Namespace) -> int:
+    from ..asset import build_asset, write_textures
+    from ..io import write_json
+    from ..mesh import save_mesh
+
+    cfg = asset_config(args)
+    out = Path(args.out)
+    asset = build_asset(args.run, cfg)
+    stats = asset.stats
+    save_mesh(asset.mesh, out / "mesh.ply")
+    write_textures(asset.textures, out / "textures")
+    glb = export_glb(asset, out / "scene.glb", sh=None if args.no_sh else asset.sh)
+    stats["glb"] = str(glb)
+    stats["glb_bytes"] = glb.stat().st_size
+    write_json(out / "mesh_stats.json", stats)
+    return _finish(args, stats, f"wrote {glb} ({stats['faces']} faces, {args.texture}² textures, "
+                                f"{stats['glb_bytes'] / 1e6:.1f} MB)")

@@ -1,0 +1,241 @@
+"""``dars priors weights|segment|colour|light|sh-probe`` — the prior stages on a scene (:mod:`toolkit.priors`).
+
+Outputs go to ``--out DIR`` or ``<scene>/priors/<stage>``; a ``manifest.json`` lists what dars wrote there, and files
+it did not write are never overwritten unless ``--force``. ``sh-probe`` fits SH to an HDR probe file and writes
+``<stem>.sh.json`` beside it (or ``--out``; an existing file only with ``--force``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from .._checks import DarsError
+from ._common import SCENE_HELP, print_json
+
+_LM = ["(0,0)", "(1,-1)", "(1,0)", "(1,1)", "(2,-2)", "(2,-1)", "(2,0)", "(2,1)", "(2,2)"]
+"""(l, m) of the 9 SH coefficients, SPEC order (table rows)."""
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("priors", help="prior stages: weights, segment, colour, light, sh-probe",
+                       description="Prior stages on a scene; outputs go next to the scene unless --out.")
+    stages = p.add_subparsers(dest="priors_command", metavar="STAGE")
+    stages.required = True
+
+    q = stages.add_parser("weights", help="distortion weight maps W (eqs. 2-4, 8) + heat-map overlays")
+    _common(q, "weights")
+    q.add_argument("--alpha", type=float, default=0.5, help="gradient weight (default 0.5)")
+    q.add_argument("--beta", type=float, default=0.3, help="semantic edge weight (default 0.3)")
+    q.add_argument("--gamma", type=float, default=0.2, help="metal mask weight (default 0.2)")
+    q.add_argument("--lambda-reg", type=float, default=0.3, help="smoothness weight of eq. 8 (default 0.3)")
+    q.add_argument("--labels", choices=["auto", "scene", "segment", "none"], default="auto",
+                   help="labels for the semantic edges: scene's, predicted (priors/segment), or none (default: auto)")
+    q.add_argument("--no-metal", action="store_true", help="ignore the scene's metal masks")
+    q.set_defaults(func=cmd_weights)
+
+    q = stages.add_parser("segment", help="7-class semantic labels (provided, builtin network, or an ONNX model)")
+    _common(q, "segment")
+    q.add_argument("--backend", choices=["provided", "builtin", "onnx"], default="provided")
+    q.add_argument("--model", default=None, help="builtin: a trained segmenter.pt; onnx: the .onnx file")
+    q.add_argument("--train-every", type=int, default=4, help="builtin: train on every n-th labelled view (default 4)")
+    q.add_argument("--eval-split", default="test", help="also report mIoU on this split if labelled ('none' to skip)")
+    q.add_argument("--steps", type=int, default=500, help="builtin: training steps (default 500)")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--no-onnx", action="store_true", help="builtin: do not write segmenter.onnx")
+    q.set_defaults(func=cmd_segment)
+
+    q = stages.add_parser("colour", help="per-image exposure / white-balance gains against the scene's consensus")
+    _common(q, "colour")
+    q.add_argument("--detector", choices=["orb", "sift"], default="orb")
+    q.add_argument("--gauge", choices=["median", "mean"], default="median",
+                   help="median: the typical photo has gain 1 (default; robust to a few odd exposures); "
+                        "mean: the geometric-mean gain is 1")
+    q.add_argument("--reference", type=int, default=None,
+                   help="fix this image's gain to 1 instead (overrides --gauge)")
+    q.set_defaults(func=cmd_colour)
+    _add_light(stages)
+    _add_sh_probe(stages)
+
+
+def _common(q: argparse.ArgumentParser, stage: str) -> None:
+    q.add_argument("scene", help=SCENE_HELP)
+    q.add_argument("--split", default="train", help="split to process (default: train)")
+    q.add_argument("--out", default=None, help=f"output directory (default: <scene>/priors/{stage})")
+    q.add_argument("--force", action="store_true", help="overwrite files in the output directory that dars did not write")
+    q.add_argument("--json", action="store_true", help="print only JSON on stdout")
+
+
+def _add_light(sub: argparse._SubParsersAction) -> None:
+    q = sub.add_parser("light", help="SH lighting from the photos with the light estimation network (eq. 11)",
+                       description="Run the light network on every image of a split and write priors/light/light.json "
+                                   "(mean of the per-image SH; dars train initialises l_env from it).")
+    _common(q, "light")
+    q.add_argument("--weights", default=None, help="light-network weights (default: toolkit/weights/lightnet_small.pt)")
+    q.add_argument("--reduce", choices=["mean", "median"], default="mean", help="combine per-image SH (default: mean)")
+    q.add_argument("--batch-size", type=int, default=32)
+    q.set_defaults(func=cmd_light)
+
+
+def _add_sh_probe(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "sh-probe",
+        help="fit 27 SH coefficients (SPEC convention) to an HDR probe (.hdr/.exr)",
+        description="Project an HDR environment map (lat-long or angular light probe) onto order-2 real spherical "
+        "harmonics of incident radiance, SPEC convention (world +z up). Angular probes are captured +y up: pass "
+        "--rotate-x 90 to bring them into the +z-up world.",
+    )
+    p.add_argument("file", help="environment map, Radiance .hdr or OpenEXR .exr")
+    p.add_argument("--layout", choices=["latlong", "angular"], default="latlong", help="map parametrisation (default: latlong)")
+    p.add_argument("--rotate-x", type=float, default=0.0, metavar="DEG", help="rotate map directions about +x by DEG degrees before fitting (90 for a +y-up probe)")
+    p.add_argument("--out", default=None, help="output JSON path (default: <stem>.sh.json beside FILE)")
+    p.add_argument("--no-save", action="store_true", help="do not write the JSON file, only print")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output file")
+    p.add_argument("--json", action="store_true", help="print only machine-readable JSON on stdout")
+    p.set_defaults(func=cmd_sh_probe)
+
+
+# ============================================================================ handlers
+def cmd_weights(args: argparse.Namespace) -> int:
+    from ..edges import WeightMapConfig
+    from ..priors import priors_weights
+    from ..scene import load_scene
+
+    scene = load_scene(args.scene, args.split)
+    cfg = WeightMapConfig(alpha=args.alpha, beta=args.beta, gamma=args.gamma, lambda_reg=args.lambda_reg)
+    s = priors_weights(scene, args.out, cfg, labels=args.labels, use_metal=not args.no_metal, force=args.force)
+    if args.json:
+        print_json(s)
+        return 0
+    print(f"{'frame':<28} {'mean W':>7} {'W>0.7':>7} {'L_dist':>9}  labels  metal")
+    for r in s["images"]:
+        print(f"{r['key'][:28]:<28} {r['mean']:7.3f} {r['frac_above_tau']:7.3f} {r['distortion_loss']:9.5f}  "
+              f"{r['labels']:<6}  {'yes' if r['metal'] else 'no'}")
+    print(f"{len(s['images'])} weight maps (alpha={cfg.alpha}, beta={cfg.beta}, gamma={cfg.gamma}, "
+          f"lambda_reg={cfg.lambda_reg}); mean L_distortion {s['mean_distortion_loss']:.5f} -> {s['out']}")
+    return 0
+
+
+def cmd_segment(args: argparse.Namespace) -> int:
+    from export.onnx import export_segmenter_onnx
+
+    from ..priors import priors_segment
+    from ..scene import list_splits, load_scene
+    from ..segment import TrainSegmenterConfig
+
+    scene = load_scene(args.scene, args.split)
+    eval_scene = None
+    if args.eval_split != "none" and args.eval_split != args.split and args.eval_split in list_splits(args.scene):
+        eval_scene = load_scene(args.scene, args.eval_split)
+    tcfg = TrainSegmenterConfig(steps=args.steps, seed=args.seed, progress=True) if args.backend == "builtin" else None
+    info = priors_segment(scene, args.out, args.backend, args.model, args.train_every, eval_scene, tcfg,
+                          export_onnx=None if args.no_onnx else export_segmenter_onnx, force=args.force)
+    if args.json:
+        print_json(info)
+        return 0
+    print(f"segmented {len(scene)} frames of '{scene.split}' with backend '{args.backend}' -> {info['out']}")
+    for name in ("heldout", "eval"):
+        if f"miou_{name}" in info:
+            what = (f"{info['heldout_views']} held-out views of '{scene.split}'" if name == "heldout"
+                    else f"{info['eval_views']} views of '{info['eval_split']}'")
+            per = ", ".join(f"{c} {v:.3f}" if v is not None else f"{c} -" for c, v in info[f"per_class_{name}"].items())
+            print(f"mIoU {info[f'miou_{name}']:.3f} on {what}  ({per})")
+    if "onnx" in info:
+        print(f"segmenter.onnx: opset {info['onnx']['opset']}, max |onnxruntime - torch| = {info['onnx']['max_abs_err']:.2e}")
+    return 0
+
+
+def cmd_colour(args: argparse.Namespace) -> int:
+    from ..colour import ColourConfig
+    from ..priors import priors_colour
+    from ..scene import load_scene
+
+    scene = load_scene(args.scene, args.split)
+    cfg = ColourConfig(detector=args.detector, gauge="reference" if args.reference is not None else args.gauge,
+                       reference=args.reference or 0, srgb=scene.srgb, progress=True)
+    d = priors_colour(scene, args.out, cfg, force=args.force)
+    if args.json:
+        print_json(d)
+        return 0
+    print(f"{'frame':<28} {'gain R':>7} {'gain G':>7} {'gain B':>7} {'stops':>6}")
+    for im in d["images"]:
+        flag = "" if im["connected"] else "  (not matched to the rest)"
+        print(f"{im['key'][:28]:<28} {im['gain'][0]:7.3f} {im['gain'][1]:7.3f} {im['gain'][2]:7.3f} "
+              f"{im['stops']:+6.2f}{flag}")
+    st = d["stats"]
+    print(f"{st['pairs_used']}/{st['pairs_tried']} pairs, {st['matches_used']} matches, residual "
+          f"{st['residual_rms_log']:.4f} (log); gauge {d['gauge']} -> {Path(d['out']) / 'colour.json'}")
+    return 0
+
+
+def cmd_light(args: argparse.Namespace) -> int:
+    from ..priors import priors_light
+    from ..scene import load_scene
+
+    scene = load_scene(args.scene, args.split)
+    info = priors_light(scene, args.out, args.weights, args.reduce, args.batch_size, args.force)
+    if args.json:
+        print_json(info)
+        return 0
+    ev = info["evaluation"]
+    head = f"{'k':>2} {'(l,m)':>7} {'R':>9} {'G':>9} {'B':>9}" + (f"   {'GT R':>8} {'GT G':>8} {'GT B':>8}" if ev else "")
+    print(f"SH lighting of {info['scene']} [{info['split']}, {info['views']} views], {info['reduce']} of the "
+          f"per-image predictions of {info['model']['arch']} ({info['model']['path']})")
+    print(head)
+    for k, (lm, rgb) in enumerate(zip(_LM, info["coeffs"])):
+        line = f"{k:>2} {lm:>7} " + " ".join(f"{v:9.4f}" for v in rgb)
+        if ev:
+            line += "   " + " ".join(f"{v:8.4f}" for v in ev["gt"][k])
+        print(line)
+    if ev:
+        parts = [f"network {ev['env_light_l2']:.4f} (per image {ev['env_light_l2_per_image_mean']:.4f})"]
+        if "baseline_train_mean_sh" in ev:
+            parts.append(f"baseline training-set mean SH {ev['baseline_train_mean_sh']:.4f}")
+        parts.append(f"baseline image mean colour {ev['baseline_mean_colour']:.4f}")
+        print("Env-light L2 vs GT (eq. 36): " + "; ".join(parts))
+    print(f"-> {Path(info['out']) / 'light.json'}")
+    return 0
+
+
+def _sh_table(payload: dict) -> str:
+    lines = [f"SH probe of {payload['file']} ({payload['layout']}, {payload['shape'][0]}x{payload['shape'][1]})",
+             f"{'k':>2} {'(l,m)':>7} {'R':>12} {'G':>12} {'B':>12}"]
+    for k, (lm, rgb) in enumerate(zip(_LM, payload["coeffs"])):
+        lines.append(f"{k:>2} {lm:>7} " + " ".join(f"{v:12.6f}" for v in rgb))
+    dc = payload["dc_irradiance"]
+    lines.append(f"DC irradiance (π · mean radiance): {dc[0]:.5g} {dc[1]:.5g} {dc[2]:.5g}")
+    return "\n".join(lines)
+
+
+def cmd_sh_probe(args: argparse.Namespace) -> int:
+    from ..io import write_json
+    from ..priors import sh_probe_json
+
+    path = Path(args.file)
+    try:
+        payload = sh_probe_json(path, args.layout, float(args.rotate_x))
+    except DarsError as e:
+        print(f"dars priors sh-probe: error: {e}", file=sys.stderr)
+        return 2
+    out = None
+    if not getattr(args, "no_save", False):
+        out = Path(args.out) if args.out else path.with_name(path.stem + ".sh.json")
+        if out.exists() and not args.force:
+            print(f"dars priors sh-probe: error: {out} exists; pass --force to overwrite it or --out to write elsewhere",
+                  file=sys.stderr)
+            return 2
+        try:
+            write_json(out, payload)
+        except OSError as e:
+            print(f"dars priors sh-probe: error: could not write {out}: {e} (use --out or --no-save)",
+                  file=sys.stderr)
+            return 2
+    if args.json:
+        sys.stdout.write(json.dumps(payload) + "\n")
+    else:
+        print(_sh_table(payload))
+        if out is not None:
+            print(f"wrote {out}")
+    return 0

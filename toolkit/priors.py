@@ -1,0 +1,549 @@
+"""The priors folder: the prior stages run on a scene, written next to it, and read back by the trainer.
+
+Stages (each writes ``<scene>/priors/<stage>/`` or ``--out DIR``):
+
+* :func:`priors_colour` — stage 2, per-image exposure / white-balance gains (``colour.json``);
+* :func:`priors_segment` — stage 3, 7-class labels per frame (``<key>.png``, ``segment.json``);
+* :func:`priors_light` — stage 4, the light network's SH estimate (``light.json``);
+* :func:`priors_weights` — stage 6, distortion weight maps W (``<key>.npy``, ``weights.json``);
+* :func:`sh_probe_json` — stage 5 on an HDR probe file (``dars priors sh-probe``).
+
+Layout and ownership: :class:`OutputDir` / :func:`prepare_out_dir`. Writes are atomic, and a ``manifest.json`` lists
+what dars wrote in a folder: a file that exists but is not in the manifest is the user's and is never overwritten
+unless ``force``. Read-only scene folders fail early with a message suggesting ``--out``.
+
+Reading: :func:`read_priors` gathers what the trainer uses (labels, metal masks, W maps, ``light.json``,
+``colour.json``) from the scene and from ``priors_root/<stage>/`` (default: :meth:`toolkit.scene.Scene.priors_dir`);
+:func:`labels_for` is the one place that decides where a frame's semantic labels come from.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Literal
+
+import numpy as np
+import torch
+
+from ._checks import ConfigError, DarsError
+from .io import atomic_write, linear_to_srgb, read_map, write_json, write_png
+
+if TYPE_CHECKING:
+    from .scene import Scene
+
+__all__ = ["OutputDir", "prepare_out_dir", "priors_path", "labels_for", "priors_weights", "priors_segment",
+           "priors_colour", "priors_light", "sh_probe_json", "TrainingPriors", "read_priors", "TAU", "MANIFEST"]
+
+TAU = 0.7
+"""The sampler's high-distortion threshold (SPEC stage 7); ``weights.json`` reports the fraction of W above it."""
+MANIFEST = "manifest.json"
+LabelSource = Literal["auto", "scene", "segment", "none"]
+
+
+# ============================================================================ output directory handling
+class OutputDir:
+    """A priors output folder: checks writability and ownership, records what we write in ``manifest.json``."""
+
+    def __init__(self, path: Path, stage: str, force: bool = False):
+        self.path = Path(path)
+        self.stage = stage
+        self.force = force
+        self.written: list[str] = []
+        self._previous: set[str] = set()
+
+    def check(self, planned: Iterable[str]) -> "OutputDir":
+        """Raise :class:`DarsError` if the folder is not writable or a planned file belongs to the user."""
+        _check_writable(self.path)
+        man = self.path / MANIFEST
+        ours: set[str] = set()
+        foreign_manifest = False
+        if man.exists():
+            try:
+                data = json.loads(man.read_text())
+                if data.get("tool") != "dars":
+                    raise ValueError("not ours")
+                ours = set(data.get("files", []))
+            except (ValueError, AttributeError):
+                foreign_manifest = True
+        self._previous = ours
+        if self.force:
+            return self
+        if foreign_manifest:
+            raise DarsError(f"{man} exists and was not written by dars; refusing to overwrite it "
+                            "(pass --force, or choose another --out)")
+        clash = [f for f in planned if f != MANIFEST and (self.path / f).exists() and f not in ours]
+        if clash:
+            more = f" and {len(clash) - 3} more" if len(clash) > 3 else ""
+            raise DarsError(f"refusing to overwrite files dars did not write in {self.path}: "
+                            f"{', '.join(clash[:3])}{more} (pass --force, or choose another --out)")
+        return self
+
+    def file(self, name: str) -> Path:
+        """Path of an output file; records it for the manifest."""
+        self.written.append(name)
+        return self.path / name
+
+    def finish(self, extra: dict | None = None) -> None:
+        files = sorted(set(self.written) | self._previous)
+        write_json(self.path / MANIFEST, {"tool": "dars", "stage": self.stage, "files": files, **(extra or {})})
+
+
+def _check_writable(path: Path) -> None:
+    hint = ("pass --out DIR to write the priors somewhere else (the scene folder may be read-only, "
+            "e.g. /work/shared/data)")
+    p = Path(path).absolute()
+    anc = p
+    while not anc.exists():
+        anc = anc.parent
+    if not anc.is_dir():
+        raise DarsError(f"cannot write priors to {p}: {anc} is a file; {hint}")
+    st = anc.stat()
+    # root bypasses permission bits: honour a folder marked read-only (no write bit) anyway
+    if not os.access(anc, os.W_OK) or not (st.st_mode & 0o222):
+        raise DarsError(f"cannot write priors to {p}: {anc} is read-only; {hint}")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".dars-write-test.", dir=p)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as e:
+        raise DarsError(f"cannot write priors to {p}: {e.strerror or e}; {hint}") from e
+
+
+def prepare_out_dir(scene, stage: str, out: "str | os.PathLike | OutputDir | None", planned: Iterable[str],
+                    force: bool = False) -> OutputDir:
+    """The output folder for ``stage``: ``out`` or ``scene.priors_dir(stage)``, checked (see :class:`OutputDir`).
+
+    An :class:`OutputDir` passed as ``out`` is checked for ``planned`` too and returned.
+    """
+    if isinstance(out, OutputDir):
+        return out.check(list(planned) + [MANIFEST])
+    path = Path(out) if out else scene.priors_dir(stage)
+    return OutputDir(path, stage, force).check(list(planned) + [MANIFEST])
+
+
+def _progress(it, desc: str, total: int | None = None):
+    from tqdm import tqdm
+
+    return tqdm(it, desc=desc, total=total, file=sys.stderr, leave=False, disable=None)
+
+
+def priors_path(scene: "Scene", stage: str, priors_root: str | os.PathLike | None = None) -> Path:
+    """The folder of prior ``stage``: ``priors_root/<stage>`` when given, else ``scene.priors_dir(stage)``."""
+    return Path(priors_root) / stage if priors_root is not None else scene.priors_dir(stage)
+
+
+def labels_for(scene: "Scene", source: LabelSource, segment_dir: str | os.PathLike | None,
+               frames: Iterable[int] | None = None) -> tuple[torch.Tensor | None, str]:
+    """Semantic labels of some frames, all from one source.
+
+    Args:
+        scene: the scene.
+        source: ``auto`` — the scene's labels (``semantic_path``) when every requested frame has them, else the
+            predictions ``<segment_dir>/<key>.png`` when every requested frame has one, else none; ``scene`` or
+            ``segment`` — that source (raises when a frame lacks it); ``none`` — no labels.
+        segment_dir: folder of ``dars priors segment`` predictions (None: no predictions).
+        frames: frame indices (default: every frame).
+
+    Returns:
+        (int64 [n, H, W] class ids (255 unlabelled) or None, the source used: ``scene``, ``segment`` or ``none``).
+
+    Raises:
+        DarsError: ``source`` is ``scene`` or ``segment`` and a frame has no such labels.
+    """
+    idx = list(range(len(scene))) if frames is None else [int(i) for i in frames]
+    if source == "none":
+        return None, "none"
+    if source in ("auto", "scene") and all("semantic" in scene.frames[i].extras for i in idx):
+        return torch.stack([scene.load_extra(i, "semantic") for i in idx]), "scene"
+    files = [Path(segment_dir) / f"{scene.frames[i].key}.png" for i in idx] if segment_dir is not None else []
+    if source in ("auto", "segment") and files and all(f.is_file() for f in files):
+        labs = []
+        for f in files:
+            lab = read_map(f, f"predicted labels {f}")
+            labs.append(torch.from_numpy(np.asarray(lab[..., 0] if lab.ndim == 3 else lab, np.int64)))
+        return torch.stack(labs), "segment"
+    if source in ("scene", "segment"):
+        missing = [i for i in idx if ("semantic" not in scene.frames[i].extras if source == "scene"
+                                      else not (segment_dir is not None
+                                                and (Path(segment_dir) / f"{scene.frames[i].key}.png").is_file()))]
+        i = missing[0]
+        raise DarsError(f"frame {i} ('{scene.frames[i].name}') has no {source} labels (use --labels auto or none)")
+    return None, "none"
+
+
+# ============================================================================ colour (stage 2)
+def priors_colour(scene, out_dir=None, cfg=None, force: bool = False) -> dict:
+    """Estimate per-image colour transforms of ``scene`` and write ``colour.json``; returns its content.
+
+    Args:
+        scene: a loaded scene (camera poses choose the pairs to match).
+        out_dir: output folder (path or :class:`OutputDir`; ``None``: ``scene.priors_dir("colour")``).
+        cfg: :class:`toolkit.colour.ColourConfig`.
+        force: overwrite files in the folder that dars did not write.
+    """
+    from .colour import ColourConfig, estimate_colour_transforms
+
+    cfg = cfg or ColourConfig(srgb=scene.srgb, progress=True)
+    out = prepare_out_dir(scene, "colour", out_dir, ["colour.json"], force)
+    images = torch.stack([scene.load_image(i) for i in _progress(range(len(scene)), "colour: load", len(scene))])
+    tr = estimate_colour_transforms(images, cfg, c2w=scene.cameras.c2w, keys=[f.key for f in scene.frames])
+    d = tr.to_json()
+    d.update(scene=str(scene.source), split=scene.split, config=asdict(cfg),
+             usage="photo_linear = gain * consensus_linear + offset; toolkit.colour.ColourTransforms.from_json")
+    write_json(out.file("colour.json"), d)
+    out.finish({"scene": str(scene.source), "split": scene.split})
+    d["out"] = str(out.path)
+    return d
+
+
+# ============================================================================ segment (stage 3)
+def priors_segment(scene, out_dir=None, backend: str = "provided", model: str | None = None,
+                   train_every: int = 4, eval_scene=None, train_cfg=None,
+                   export_onnx: Callable[..., Any] | None = None, force: bool = False) -> dict:
+    """Label every frame of ``scene`` and write ``<key>.png`` (uint8 ids), ``<key>_preview.png`` and
+    ``segment.json`` (mIoU where ground-truth labels exist); for ``builtin`` also ``segmenter.pt`` and
+    ``segmenter.onnx`` (with the ONNX parity figure).
+
+    Args:
+        scene: the frames to label.
+        out_dir: output folder (path or :class:`OutputDir`; ``None``: ``scene.priors_dir("segment")``).
+        backend: ``provided``, ``builtin`` or ``onnx``.
+        model: ``builtin``: a ``segmenter.pt`` to use instead of training; ``onnx``: the ONNX file (required).
+        train_every: ``builtin`` without ``model``: train on every n-th labelled frame of ``scene``; mIoU is then
+            reported on the other frames (``miou_heldout``).
+        eval_scene: another labelled split (e.g. test) to report ``miou_eval`` on (not written).
+        train_cfg: :class:`toolkit.segment.TrainSegmenterConfig`.
+        export_onnx: for ``builtin``, the ONNX exporter that writes ``segmenter.onnx`` —
+            ``export_onnx(net, path, image_size=(H, W))`` returning a report with ``path``, ``opset``,
+            ``max_abs_err``, ``inputs_checked`` and ``file_size`` (``dars priors segment`` passes
+            :func:`export.onnx.export_segmenter_onnx`; the toolkit itself never imports ``export``). None: no ONNX.
+        force: overwrite files in the folder that dars did not write.
+
+    Raises:
+        DarsError / SegmentationError: unwritable folder, user files in the way, missing labels or model.
+    """
+    from .segment import (SegmentConfig, SegmentationError, TrainSegmenterConfig, load_segmenter, mean_iou,
+                          save_segmenter, segment_images, train_segmenter)
+    from .visualise import colourise_labels, tile
+
+    keys = [f.key for f in scene.frames]
+    planned = [f"{k}.png" for k in keys] + [f"{k}_preview.png" for k in keys] + ["segment.json"]
+    if backend == "builtin":
+        planned += ["segmenter.pt"] + (["segmenter.onnx"] if export_onnx is not None else [])
+    out = prepare_out_dir(scene, "segment", out_dir, planned, force)
+    has_gt = scene.has_extra("semantic")
+    info: dict = {"scene": str(scene.source), "split": scene.split, "backend": backend}
+    net = None
+    train_idx: list[int] = []
+    if backend == "builtin":
+        if model:
+            net = load_segmenter(model)
+            info["model"] = str(model)
+        else:
+            if not has_gt:
+                raise SegmentationError(
+                    f"{scene.source}: backend 'builtin' trains on labelled views, but split '{scene.split}' has no "
+                    "semantic_path labels; pass --model segmenter.pt (a trained one) or use --backend onnx")
+            if train_every < 1:
+                raise SegmentationError(f"--train-every {train_every} must be >= 1")
+            train_idx = list(range(0, len(scene), train_every))
+            imgs = scene.load_images(train_idx)
+            labs = torch.stack([scene.load_extra(i, "semantic") for i in train_idx])
+            cfg = train_cfg or TrainSegmenterConfig(progress=True)
+            res = train_segmenter(imgs, labs, cfg)
+            net = res.model
+            info.update(train_views=[scene.frames[i].key for i in train_idx], train_seconds=round(res.seconds, 1),
+                        train_miou=res.train_miou, final_loss=float(np.mean(res.losses[-20:])) if res.losses else None,
+                        parameters=net.num_parameters(), train_config=asdict(cfg))
+        save_segmenter(out.file("segmenter.pt"), net, {"scene": str(scene.source)})
+        if export_onnx is not None:
+            h, w = scene.image_size
+            rep = export_onnx(net, out.file("segmenter.onnx"), image_size=(h, w))
+            info["onnx"] = {"path": str(rep.path), "opset": rep.opset, "max_abs_err": rep.max_abs_err,
+                            "inputs_checked": rep.inputs_checked, "file_size": rep.file_size}
+    elif backend == "onnx":
+        if not model:
+            raise SegmentationError("backend 'onnx' needs --model FILE.onnx")
+        info["model"] = str(model)
+    scfg = SegmentConfig(backend=backend)
+
+    preds, gts = [], []
+    for i in _progress(range(len(scene)), "segment", len(scene)):
+        f = scene.frames[i]
+        img = scene.load_image(i)
+        gt = scene.load_extra(i, "semantic") if "semantic" in f.extras else None
+        if backend == "provided":
+            if gt is None:
+                raise SegmentationError(f"frame {i} ('{f.name}') has no semantic_path labels for backend 'provided'")
+            seg = segment_images(img[None], scfg, labels=gt[None])
+        else:
+            seg = segment_images(img[None], scfg, model=net if backend == "builtin" else model)
+        lab = seg.labels[0]
+        write_png(out.file(f"{f.key}.png"), lab.numpy().astype(np.uint8))
+        row = [img.permute(1, 2, 0).numpy(), colourise_labels(lab)]
+        if gt is not None:
+            row.append(colourise_labels(gt))
+        write_png(out.file(f"{f.key}_preview.png"), tile([row]))
+        if gt is not None and i not in train_idx:
+            preds.append(lab)
+            gts.append(gt)
+    from .scene import SEMANTIC_CLASSES
+
+    def _report(p, g):
+        miou, per = mean_iou(torch.stack(p), torch.stack(g))
+        return miou, {c: (None if v != v else v) for c, v in zip(SEMANTIC_CLASSES, per)}
+
+    if gts:
+        info["miou_heldout"], info["per_class_heldout"] = _report(preds, gts)
+        info["heldout_views"] = len(gts)
+    if eval_scene is not None and eval_scene.has_extra("semantic") and backend != "provided":
+        ep, eg = [], []
+        for i in _progress(range(len(eval_scene)), f"segment eval ({eval_scene.split})", len(eval_scene)):
+            seg = segment_images(eval_scene.load_image(i)[None], scfg, model=net if backend == "builtin" else model)
+            ep.append(seg.labels[0])
+            eg.append(eval_scene.load_extra(i, "semantic"))
+        info["miou_eval"], info["per_class_eval"] = _report(ep, eg)
+        info["eval_split"] = eval_scene.split
+        info["eval_views"] = len(eg)
+    info["out"] = str(out.path)
+    write_json(out.file("segment.json"), info)
+    out.finish({"scene": str(scene.source), "split": scene.split})
+    return info
+
+
+# ============================================================================ light (stage 4)
+def priors_light(scene, out_dir=None, weights: str | None = None, reduce: str = "mean", batch_size: int = 32,
+                 force: bool = False) -> dict:
+    """Estimate the scene's SH lighting with the light network and write ``light.json``; returns its content.
+
+    Args:
+        scene: a loaded :class:`toolkit.scene.Scene` (sRGB photos; linear HDR scenes are clipped to [0, 1] and
+            sRGB-encoded first, as the network was trained on 8-bit-style photos).
+        out_dir: output folder (path or :class:`OutputDir`; ``None``: ``scene.priors_dir("light")``).
+        weights: a file written by :func:`toolkit.lightnet.save_lightnet` (``None``: the shipped weights).
+        reduce: ``mean`` or ``median`` of the per-image predictions.
+        batch_size: images per forward pass (images are loaded batch by batch).
+        force: overwrite files in the folder that dars did not write.
+
+    Raises:
+        LightNetError: missing or corrupt weights; DarsError: unwritable folder, user files in the way.
+    """
+    from .lightnet import DEFAULT_WEIGHTS, aggregate_sh, load_lightnet, mean_colour_sh, predict_sh
+    from .metrics import env_light_l2
+
+    if reduce not in ("mean", "median"):
+        raise ConfigError(f"--reduce {reduce!r}: choose 'mean' or 'median'")
+    model = load_lightnet(weights)  # fail before touching the output folder
+    out = prepare_out_dir(scene, "light", out_dir, ["light.json"], force)
+    per, base_b = [], []
+    for i in _progress(range(0, len(scene), batch_size), "light", (len(scene) + batch_size - 1) // batch_size):
+        imgs = torch.stack([scene.load_image(j) for j in range(i, min(i + batch_size, len(scene)))]).float()
+        if not scene.srgb:
+            imgs = linear_to_srgb(imgs.clamp(0.0, 1.0))
+        per.append(predict_sh(model, imgs, batch_size))
+        base_b.append(mean_colour_sh(imgs))
+    per_image = torch.cat(per)
+    coeffs = aggregate_sh(per_image, reduce)
+    meta = model.meta
+    info: dict = {
+        "coeffs": coeffs.tolist(),
+        "source": "lightnet",
+        "reduce": reduce,
+        "per_image": [{"key": f.key, "coeffs": c.tolist()} for f, c in zip(scene.frames, per_image)],
+        "model": {"path": str(Path(weights) if weights else DEFAULT_WEIGHTS), "arch": model.cfg.name,
+                  "parameters": model.num_parameters(), "input_size": model.cfg.input_size,
+                  "output_range": model.cfg.output_range, "training_command": meta.get("training_command"),
+                  "heldout_env_light_l2": meta.get("heldout_env_light_l2")},
+        "scene": str(scene.source), "split": scene.split, "views": len(scene),
+        "convention": "real SH order 2, SPEC order, incident radiance, world frame +z up, coeffs 9 x [r, g, b]",
+        "note": "world-frame bands 1-2 are only meaningful for rooms like the one the network was trained on",
+        "evaluation": None,
+    }
+    if scene.sh is not None:
+        gt = scene.sh.float()
+        ev = {"env_light_l2": float(env_light_l2(coeffs, gt)),
+              "env_light_l2_per_image_mean": float(env_light_l2(per_image, gt[None].expand_as(per_image)).mean()),
+              "baseline_mean_colour": float(env_light_l2(aggregate_sh(torch.cat(base_b), reduce), gt))}
+        if "train_mean_sh" in meta:
+            ev["baseline_train_mean_sh"] = float(env_light_l2(torch.tensor(meta["train_mean_sh"]).float(), gt))
+        ev["gt"] = gt.tolist()
+        info["evaluation"] = ev
+    info["out"] = str(out.path)
+    write_json(out.file("light.json"), info)
+    out.finish({"scene": str(scene.source), "split": scene.split})
+    return info
+
+
+# ============================================================================ SH probe (stage 5)
+def sh_probe_json(path: str | os.PathLike, layout: str, rotate_x_deg: float) -> dict[str, Any]:
+    """Fit order-2 SH to the HDR environment map at ``path``; returns the ``dars priors sh-probe`` JSON document
+    (``coeffs`` 9 x [r, g, b] in the SPEC convention, the three.js and glTF forms, ...). Nothing is written.
+
+    Args:
+        path: a Radiance ``.hdr`` or OpenEXR ``.exr`` file.
+        layout: ``latlong`` (SPEC lat-long) or ``angular`` (a light probe).
+        rotate_x_deg: rotate the map's directions about +x first (90 for a +y-up probe).
+    """
+    path = Path(path)
+    from .sh import fit_sh_probe, read_envmap, rotation_x, sh_to_gltf_ibl, sh_to_threejs_lightprobe
+
+    image = read_envmap(path)
+    rotation = rotation_x(rotate_x_deg) if rotate_x_deg else None
+    probe = fit_sh_probe(image, layout=layout, rotation=rotation)
+    return {
+        "coeffs": probe.to_list(),
+        "file": str(path),
+        "layout": layout,
+        "rotate_x_deg": float(rotate_x_deg),
+        "shape": list(probe.source_shape),
+        "dc_irradiance": [float(v) for v in probe.dc_irradiance.tolist()],
+        "convention": "real SH order 2, SPEC order, incident radiance, world +z up, coeffs 9 x [r, g, b]",
+        "threejs": sh_to_threejs_lightprobe(probe.coeffs),
+        "gltf": sh_to_gltf_ibl(probe.coeffs),
+    }
+
+
+# ============================================================================ weights (stage 6)
+def priors_weights(scene, out_dir=None, cfg=None, labels: str = "auto", use_metal: bool = True,
+                   force: bool = False) -> dict:
+    """Write distortion weight maps of every frame: ``<key>.npy`` (float16 W), ``<key>_overlay.png`` and
+    ``weights.json``; returns the summary written to ``weights.json``.
+
+    Args:
+        scene: a loaded :class:`toolkit.scene.Scene`.
+        out_dir: output folder (path or :class:`OutputDir`; ``None``: ``scene.priors_dir("weights")``).
+        cfg: :class:`toolkit.edges.WeightMapConfig` (default config if ``None``).
+        labels: ``auto`` (scene labels, else ``priors/segment`` predictions, else none), ``scene``, ``segment``
+            or ``none``.
+        use_metal: use the scene's ``metal`` masks when present.
+        force: overwrite files in the folder that dars did not write.
+
+    Raises:
+        DarsError: the folder is not writable, or holds files of the user's that would be overwritten.
+    """
+    from .edges import WeightMapConfig, weight_map, weight_overlay
+
+    cfg = cfg or WeightMapConfig()
+    keys = [f.key for f in scene.frames]
+    out = prepare_out_dir(scene, "weights", out_dir,
+                          [f"{k}.npy" for k in keys] + [f"{k}_overlay.png" for k in keys] + ["weights.json"], force)
+    seg_dir = scene.priors_dir("segment")
+    rows = []
+    for i in _progress(range(len(scene)), "weights", len(scene)):
+        f = scene.frames[i]
+        img = scene.load_image(i)
+        lab, lab_src = labels_for(scene, labels, seg_dir, [i])  # [1, H, W] or None
+        metal = scene.load_extra(i, "metal") if use_metal and "metal" in f.extras else None
+        wm = weight_map(img[None], lab, None if metal is None else metal[None], cfg)
+        w = wm.weights[0]
+        _save_npy(out.file(f"{f.key}.npy"), w.numpy().astype(np.float16))
+        write_png(out.file(f"{f.key}_overlay.png"), weight_overlay(img, w))
+        rows.append({"key": f.key, "name": f.name, "mean": float(w.mean()), "frac_above_tau": float((w > TAU).float().mean()),
+                     "distortion_loss": float(wm.distortion_loss[0]), "labels": lab_src, "metal": metal is not None})
+    summary = {
+        "scene": str(scene.source), "split": scene.split, "tau": TAU, "config": asdict(cfg),
+        "distortion_loss_definition": "lambda_reg * (sum (D_x W)^2 + sum (D_y W)^2) / (H W), per image",
+        "mean_distortion_loss": float(np.mean([r["distortion_loss"] for r in rows])) if rows else 0.0,
+        "mean_weight": float(np.mean([r["mean"] for r in rows])) if rows else 0.0,
+        "images": rows, "out": str(out.path),
+    }
+    write_json(out.file("weights.json"), summary)
+    out.finish({"scene": str(scene.source), "split": scene.split})
+    return summary
+
+
+def _save_npy(path: Path, arr) -> None:
+    with atomic_write(path) as fh:
+        np.save(fh, arr)
+
+
+# ============================================================================ reading (the trainer)
+@dataclass
+class TrainingPriors:
+    """What the trainer reads from a scene and its priors folder (:func:`read_priors`).
+
+    Attributes:
+        labels: uint8 [V, H, W] class ids (255 unlabelled), or None.
+        labels_source: ``provided`` (the scene's), ``predicted (<dir>)``, ``none`` or ``off``.
+        metal: bool [V, H, W] the scene's metal masks, or None.
+        weights: float32 [V, H, W] W maps of ``dars priors weights``, or None (not there, or not asked for).
+        distortion: float [V] L_distortion of each loaded map (0 where ``weights.json`` lacks it), or None.
+        weights_source: ``loaded (<dir>)`` or None.
+        light: float32 [9, 3] SH coefficients of ``light.json``, or None.
+        light_source: ``light network (<file>)`` or None.
+        colour: per-frame :class:`toolkit.colour.ColourTransforms` of ``colour.json`` in scene frame order, or None.
+        colour_source: ``loaded (<file>)`` or None.
+    """
+
+    labels: torch.Tensor | None
+    labels_source: str
+    metal: torch.Tensor | None
+    weights: torch.Tensor | None = None
+    distortion: torch.Tensor | None = None
+    weights_source: str | None = None
+    light: torch.Tensor | None = None
+    light_source: str | None = None
+    colour: Any = None
+    colour_source: str | None = None
+
+
+def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *, labels: LabelSource | None = "auto",
+                weights: bool = True, colour: bool = True) -> TrainingPriors:
+    """Read the priors of ``scene`` for training, file by file (nothing is computed here).
+
+    Args:
+        scene: the training split.
+        priors_root: folder holding ``<stage>/`` outputs (default: ``scene.priors_dir(stage)``).
+        labels: label source for :func:`labels_for` over every frame (predictions from ``segment/``); None: semantics
+            off (``labels_source`` ``off``).
+        weights: read ``weights/<key>.npy`` (used only when every frame has one).
+        colour: read ``colour/colour.json``.
+
+    Raises:
+        DarsError: ``colour.json`` lacks a transform for a frame of the scene.
+    """
+    V = len(scene)
+    if labels is None:
+        labs, lab_src = None, "off"
+    else:
+        seg_dir = priors_path(scene, "segment", priors_root)
+        labs, src = labels_for(scene, labels, seg_dir)
+        labs = None if labs is None else labs.to(torch.uint8)
+        lab_src = {"scene": "provided", "segment": f"predicted ({seg_dir})"}.get(src, "none")
+    metal = torch.stack([scene.load_extra(i, "metal") for i in range(V)]) if scene.has_extra("metal") else None
+    out = TrainingPriors(labels=labs, labels_source=lab_src, metal=metal)
+    wdir = priors_path(scene, "weights", priors_root)
+    wfiles = [wdir / f"{f.key}.npy" for f in scene.frames]
+    if weights and wdir.is_dir() and all(p.is_file() for p in wfiles):
+        out.weights = torch.from_numpy(np.stack([np.load(p).astype(np.float32) for p in wfiles]))
+        meta_p = wdir / "weights.json"
+        out.distortion = torch.zeros(V)
+        if meta_p.is_file():
+            meta = json.loads(meta_p.read_text())
+            per = {d["key"]: d.get("distortion_loss", 0.0) for d in meta.get("images", []) if "key" in d}
+            out.distortion = torch.tensor([float(per.get(f.key, 0.0)) for f in scene.frames])
+        out.weights_source = f"loaded ({wdir})"
+    light_json = priors_path(scene, "light", priors_root) / "light.json"
+    if light_json.is_file():
+        d = json.loads(light_json.read_text())
+        out.light = torch.tensor(d["coeffs"], dtype=torch.float32).reshape(9, 3)
+        out.light_source = f"light network ({light_json})"
+    cjson = priors_path(scene, "colour", priors_root) / "colour.json"
+    if colour and cjson.is_file():
+        from .colour import ColourTransforms
+
+        tr = ColourTransforms.from_json(json.loads(cjson.read_text()))
+        if tr.keys is not None:
+            order = {k: i for i, k in enumerate(tr.keys)}
+            missing = [f.key for f in scene.frames if f.key not in order]
+            if missing:
+                raise DarsError(f"{cjson} has no colour transform for frames {missing[:5]}; re-run `dars priors colour`")
+            tr = tr.subset([order[f.key] for f in scene.frames])
+        out.colour, out.colour_source = tr, f"loaded ({cjson})"
+    return out

@@ -1,0 +1,274 @@
+"""Training configuration: :class:`TrainConfig`, the named presets (:func:`make_config`) and the data-dependent
+settings filled from the scene (:func:`resolve_config`: scene type and contraction, the scene box, hash-grid
+resolution)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, replace
+from dataclasses import field as dc_field
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from .._checks import ConfigError, check_choice
+from ..encoding import HashGridConfig
+from ..field import FieldConfig
+from ..losses import LossWeights
+from ..sampling import SamplerConfig
+from ..scene import Scene
+
+__all__ = ["TrainConfig", "PRESETS", "make_config", "resolve_config", "resolve_scene_box", "SHELL_FADE",
+           "photos_have_transparency"]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that defines a training run (saved as ``config.json``)."""
+
+    preset: str = "fast"
+    field: FieldConfig = dc_field(default_factory=FieldConfig)
+    sampler: SamplerConfig = dc_field(default_factory=SamplerConfig)
+    """Training samples (perturbed)."""
+    render_sampler: SamplerConfig = dc_field(default_factory=lambda: SamplerConfig(n_coarse=128, perturb=False))
+    """Samples for rendering test views (paper: 128 per ray)."""
+    losses: LossWeights = dc_field(default_factory=LossWeights)
+    batch_rays: int = 4096
+    """Rays per step (paper: 1024)."""
+    ssim_patches: int = 4
+    """16x16 patches per step for L_ssim (their rays are part of the batch)."""
+    ssim_patch_size: int = 16
+    steps: int = 0
+    """Total steps (0: use ``minutes``)."""
+    minutes: float = 0.0
+    """Wall-clock training budget (0: use ``steps``)."""
+    lr_grid: float = 1e-2
+    lr_net: float = 2e-3
+    lr_light: float = 5e-3
+    lr_colour: float = 2e-4
+    """Per-image colour gains (stage 2). Ten times below ``lr_net``: each image sees ~1/B of a batch, and at
+    ``lr_net`` Adam's noisy steps let the gains random-walk several per cent in 1000 steps (measured on the
+    perturbed-sample benchmark), absorbing what the field should learn."""
+    lr_final_factor: float = 0.1
+    """Learning rates decay exponentially to this factor by the end of the run."""
+    weight_decay: float = 1e-6
+    occupancy_resolution: int = 64
+    occupancy_every: int = 16
+    occupancy_warmup: int = 64
+    auto_resolution: bool = True
+    """Set the hash grid's finest resolution from the data (:func:`resolve_config`)."""
+    pretrain_fraction: float = 0.3
+    """Stage (a) length as a fraction of the run (steps or minutes)."""
+    light_period: int = 50
+    light_steps: int = 5
+    deferred: bool = False
+    """Heads and PBR shading once per ray on the accumulated feature (cheaper per step, but it learns more
+    slowly from a transparent start); False (default): per sample, then composited."""
+    shading: Literal["pbr", "radiance"] = "pbr"
+    """``pbr``: decomposed (material + SH light); ``radiance``: plain NeRF colour head (baseline)."""
+    semantics: bool = True
+    """Semantic guidance: semantic loss, labels in L_mat and in W; off = the "w/o semantics" ablation."""
+    fixed_light: bool = False
+    albedo_supervision: bool = False
+    """Use ground-truth albedo maps in L_mat (eq. 20 a_gt) when the scene has them. Off by default: a real
+    capture has none, and evaluating albedo MAE against the same maps would be circular."""
+    colour_correction: Literal["auto", "on", "off"] = "auto"
+    """Per-image gains (stage 2): ``auto`` = on when ``priors/colour/colour.json`` exists."""
+    background: Literal["auto", "constant", "learned", "env"] = "auto"
+    """``auto``: the scene's background colour for RGBA images, else a learned lat-long environment."""
+    scene_type: Literal["auto", "unbounded", "room", "object"] = "auto"
+    """``unbounded`` (``room`` is an alias): space is contracted beyond the scene box (:mod:`toolkit.space`) and
+    a learned environment lies beyond the far radius — rooms, galleries, outdoor and real object captures with their
+    surroundings; ``object``: an isolated object on a known background colour, nothing modelled outside the box.
+    ``auto``: ``object`` when the photos have real transparency (RGBA with alpha < 1), else ``unbounded``."""
+    scene_box: tuple | None = None
+    """The scene box ``((xmin, ymin, zmin), (xmax, ymax, zmax))`` the run was trained with (filled by
+    :func:`resolve_config`: the file's ``aabb`` or one fitted to sparse points, :mod:`toolkit.bounds`)."""
+    scene_box_source: str = ""
+    """Where :attr:`scene_box` came from."""
+    seed: int = 0
+    checkpoint_every: int = 500
+    log_every: int = 25
+    calibration_steps: int = 96
+    """The first steps, whose schedule does not depend on the run's length (stage a, constant learning rate). A
+    ``minutes`` budget becomes a step count after them, timed over their last 24 steps (after the occupancy
+    warm-up of ``occupancy_warmup`` steps, so the timing is that of the rest of the run)."""
+    snapshot_minutes: tuple[float, ...] = ()
+    """Save the field at these elapsed training minutes (benchmarks evaluate them)."""
+    device: str = "auto"
+
+    def __post_init__(self):
+        check_choice(self.shading, ("pbr", "radiance"), "shading")
+        check_choice(self.colour_correction, ("auto", "on", "off"), "colour_correction")
+        check_choice(self.background, ("auto", "constant", "learned", "env"), "background")
+        check_choice(self.scene_type, ("auto", "unbounded", "room", "object"), "scene_type")
+        if self.batch_rays < 16:
+            raise ConfigError(f"batch_rays={self.batch_rays} must be >= 16")
+        if self.steps < 0 or self.minutes < 0:
+            raise ConfigError(f"steps={self.steps} and minutes={self.minutes} must be >= 0")
+        if not 0.0 <= self.pretrain_fraction <= 1.0:
+            raise ConfigError(f"pretrain_fraction={self.pretrain_fraction} must be in [0, 1]")
+        if self.light_steps >= self.light_period:
+            raise ConfigError(f"light_steps={self.light_steps} must be < light_period={self.light_period}")
+        n_patch = self.ssim_patches * self.ssim_patch_size ** 2
+        if n_patch >= self.batch_rays:
+            raise ConfigError(f"ssim patches use {n_patch} rays, more than batch_rays={self.batch_rays}")
+        if self.ssim_patches and self.ssim_patch_size <= 5:
+            raise ConfigError(f"ssim_patch_size={self.ssim_patch_size} must be > 5 for the 11x11 window")
+        for lr in ("lr_grid", "lr_net", "lr_light", "lr_colour"):
+            if not getattr(self, lr) > 0:
+                raise ConfigError(f"{lr}={getattr(self, lr)} must be positive")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        d = dict(d)
+        fd = dict(d.pop("field"))
+        fd["grid"] = HashGridConfig(**fd["grid"])
+        if "shell_faces" in fd:
+            fd["shell_faces"] = tuple(bool(f) for f in fd["shell_faces"])
+        fd.setdefault("contraction", False)  # runs made before unbounded scenes were bounded
+        if d.get("scene_box") is not None:
+            d["scene_box"] = tuple(tuple(float(v) for v in row) for row in d["scene_box"])
+        samplers = {k: dict(d.pop(k)) for k in ("sampler", "render_sampler")}
+        for v in samplers.values():
+            v.setdefault("normalise", "none")  # runs made before W was rank-normalised
+        return cls(field=FieldConfig(**fd), sampler=SamplerConfig(**samplers["sampler"]),
+                   render_sampler=SamplerConfig(**samplers["render_sampler"]), losses=LossWeights(**d.pop("losses")),
+                   snapshot_minutes=tuple(d.pop("snapshot_minutes", ())), **d)
+
+
+PRESETS = ("fast", "paper")
+
+
+def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
+    """A named preset with overrides (``field=...``, ``steps=...``, ablation switches ...).
+
+    ``paper``: the paper's setting — ``mlp`` field (PE + 8x256 LayerNorm backbone), 64 train / 128 test
+    stratified samples + DARS fine samples, 1024-ray batches, AdamW at 5e-4 (the paper's 5e-14 is a typo)
+    decaying to 5e-5, L_eikonal after step 2000. GPU-scale.
+    ``fast``: the same decomposition, heads, PBR shading and DARS on CPU: hash-grid field (finest resolution
+    from the data), 32 coarse + 8 fine samples, 4096-ray batches, L_eikonal after step 500.
+
+    Ablation switches (Table 6): ``dars=False`` (w/o DARS), ``semantics=False`` (w/o semantic guidance),
+    ``fixed_light=True``, ``mat_loss=False`` (w/o L_mat), ``baseline="nerf"`` (standard NeRF: stratified +
+    hierarchical samples, radiance head, no priors, no room prior).
+    """
+    check_choice(preset, PRESETS, "preset")
+    if preset == "paper":
+        cfg = TrainConfig(
+            preset="paper",
+            field=FieldConfig(encoding="mlp", head_hidden=128),
+            sampler=SamplerConfig(n_coarse=64, n_fine=8),
+            render_sampler=SamplerConfig(n_coarse=128, n_fine=8, perturb=False),
+            batch_rays=1024, ssim_patches=1, lr_net=5e-4, lr_light=5e-3, occupancy_resolution=128,
+            losses=LossWeights(eikonal_start=2000),
+        )
+    else:
+        cfg = TrainConfig(
+            preset="fast",
+            field=FieldConfig(encoding="grid"),
+            sampler=SamplerConfig(n_coarse=32, n_fine=8),
+            render_sampler=SamplerConfig(n_coarse=64, n_fine=8, perturb=False),
+            batch_rays=4096, ssim_patches=4, losses=LossWeights(eikonal_start=500),
+        )
+    dars = overrides.pop("dars", None)
+    mat_loss = overrides.pop("mat_loss", None)
+    baseline = overrides.pop("baseline", None)
+    if baseline not in (None, "nerf"):
+        raise ConfigError(f"baseline={baseline!r}: the only baseline is 'nerf'")
+    if baseline == "nerf":
+        overrides.setdefault("shading", "radiance")
+        overrides.setdefault("semantics", False)
+        dars, mat_loss = False, False
+        overrides.setdefault("fixed_light", True)
+        overrides.setdefault("scene_type", "object")  # no room prior either: a plain transparent start
+    if dars is not None:
+        cfg = replace(cfg, sampler=replace(cfg.sampler, dars=bool(dars)),
+                      render_sampler=replace(cfg.render_sampler, dars=bool(dars)))
+    if mat_loss is False:
+        cfg = replace(cfg, losses=replace(cfg.losses, mat=0.0))
+    if "batch_rays" in overrides and "ssim_patches" not in overrides:  # patches take at most half a batch
+        s = overrides.get("ssim_patch_size", cfg.ssim_patch_size)
+        overrides["ssim_patches"] = min(cfg.ssim_patches, int(overrides["batch_rays"]) // (2 * s * s))
+    return replace(cfg, **overrides)
+
+
+SHELL_FADE = 0.1
+"""Fraction of the run over which the (legacy, bounded-only) room prior's layer fades in, after stage (a)."""
+
+
+def photos_have_transparency(scene: Scene, n: int = 3) -> bool:
+    """Whether the photos are RGBA with real transparency (alpha < 1 somewhere in the first, middle or last
+    photo): an object rendered on a known background. An alpha channel that is 255 everywhere does not count."""
+    f0 = scene.frames[0]
+    if f0.image_path is None or f0.image_path.suffix.lower() != ".png":
+        return False
+    from PIL import Image
+
+    with Image.open(f0.image_path) as im:
+        if im.mode not in ("RGBA", "LA"):
+            return False
+    idx = sorted({0, len(scene) // 2, len(scene) - 1})[:n]
+    return any(bool((scene.load_image(i, with_alpha=True)[3] < 0.999).any()) for i in idx)
+
+
+def resolve_scene_box(cfg: TrainConfig, scene: Scene, log=None) -> tuple[Scene, TrainConfig]:
+    """The scene box of a run: ``cfg.scene_box`` when set (a resumed or loaded run), the file's ``aabb``, or one
+    fitted to sparse points (the scene's own, else triangulated from the photos; :mod:`toolkit.bounds`)."""
+    from dataclasses import replace as _r
+
+    if cfg.scene_box is not None:
+        return _r(scene, aabb=torch.tensor(cfg.scene_box, dtype=torch.float32)), cfg
+    if scene.meta.get("aabb_source") == "file":
+        box, src = scene.aabb.numpy().astype(np.float64), "file"
+    else:
+        from ..bounds import scene_box_from_points, triangulate_sparse_points
+
+        pts = triangulate_sparse_points(scene, log=log)
+        c2w = scene.cameras.c2w.double().numpy()
+        sb = scene_box_from_points(pts.points, c2w, scene.cameras.fx.double().numpy(),
+                                   scene.cameras.width.double().numpy())
+        box, src = sb.aabb, sb.source
+    if log is not None:
+        lo, hi = box
+        log(f"[dars] scene box ({src}): [{lo[0]:.2f}, {lo[1]:.2f}, {lo[2]:.2f}] .. [{hi[0]:.2f}, {hi[1]:.2f}, {hi[2]:.2f}] m")
+    cfg = _r(cfg, scene_box=tuple(tuple(float(v) for v in row) for row in box), scene_box_source=src)
+    return _r(scene, aabb=torch.tensor(box, dtype=torch.float32)), cfg
+
+
+def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfig, Scene]:
+    """Fill data-dependent settings; returns the config and the scene with its resolved box.
+
+    * ``scene_type`` (``auto`` → ``unbounded`` or ``object``) and with it the field's contraction;
+    * the scene box (:func:`resolve_scene_box`);
+    * with ``auto_resolution`` the hash grid's finest level resolves a quarter of the pixel footprint at the median
+      camera distance — ``next_pow2(4 · box extent / footprint)`` (twice that with contraction: the box spans half
+      of each grid axis), clamped to [256, 2048].
+    """
+    kind = cfg.scene_type
+    if kind == "auto":
+        kind = "object" if photos_have_transparency(scene) else "unbounded"
+    if kind == "room":
+        kind = "unbounded"
+    if cfg.scene_type != kind or cfg.field.contraction != (kind == "unbounded"):
+        cfg = replace(cfg, scene_type=kind, field=replace(cfg.field, contraction=kind == "unbounded", shell=0.0))
+    scene, cfg = resolve_scene_box(cfg, scene, log)
+    if not cfg.auto_resolution or cfg.field.encoding != "grid":
+        return cfg, scene
+    cams = scene.cameras
+    centre = scene.aabb.mean(0)
+    dist = float((cams.origins - centre).norm(dim=-1).median())
+    footprint = dist / float(cams.fx.median())
+    extent = float((scene.aabb[1] - scene.aabb[0]).max())
+    k = 8.0 if cfg.field.contraction else 4.0
+    res = 2 ** math.ceil(math.log2(max(k * extent / footprint, 1.0)))
+    res = int(min(2048, max(256, res)))
+    grid = replace(cfg.field.grid, max_resolution=res, base_resolution=min(cfg.field.grid.base_resolution, res))
+    return replace(cfg, field=replace(cfg.field, grid=grid), auto_resolution=False), scene
+
+

@@ -1,0 +1,248 @@
+"""The training loop (:func:`train`): schedules, logging, checkpoints and resume, snapshots, loss curves."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from .._checks import ConfigError, DarsError
+from ..io import save_torch, write_json
+from ..sampling import OccupancyGrid
+from ..scene import load_scene
+from .config import TrainConfig, resolve_config
+from .data import prepare_data
+from .step import (TrainingDiverged, TrainState, calibrate_steps, init_state, light_step, lr_progress, progress,
+                   train_step)
+
+__all__ = ["train", "save_checkpoint", "load_checkpoint"]
+
+
+def _set_lr(state: TrainState) -> None:
+    f = state.cfg.lr_final_factor ** lr_progress(state)
+    for opt in (state.optimizer, state.light_optimizer):
+        for g in opt.param_groups:
+            g["lr"] = g["initial_lr"] * f
+
+
+# ============================================================================ checkpoints
+def _checkpoint_dict(state: TrainState) -> dict:
+    return {
+        "version": 1,
+        "config": state.cfg.to_dict(),
+        "step": state.step,
+        "elapsed": state.elapsed,
+        "field": state.field.state_dict(),
+        "background": state.background.state_dict(),
+        "background_mode": state.background.mode,
+        "l_env": state.l_env.detach().cpu(),
+        "colour": None if state.colour is None else state.colour.state_dict(),
+        "optimizer": state.optimizer.state_dict(),
+        "light_optimizer": state.light_optimizer.state_dict(),
+        "occupancy": state.occupancy.state_dict(),
+        "generator": state.generator.get_state(),
+        "snapshots_done": list(state.snapshots_done),
+    }
+
+
+def save_checkpoint(state: TrainState, path: Path) -> None:
+    """Write the state atomically (temp file + rename)."""
+    save_torch(path, _checkpoint_dict(state))
+
+
+def load_checkpoint(path: Path, state: TrainState) -> TrainState:
+    """Restore ``state`` (built by :func:`init_state` with the same config) from ``path``."""
+    ck = torch.load(path, map_location=state.device, weights_only=False)
+    state.field.load_state_dict(ck["field"])
+    state.background.load_state_dict(ck["background"])
+    with torch.no_grad():
+        state.l_env.copy_(ck["l_env"].to(state.device))
+    if state.colour is not None and ck.get("colour") is not None:
+        state.colour.load_state_dict(ck["colour"])
+    state.optimizer.load_state_dict(ck["optimizer"])
+    state.light_optimizer.load_state_dict(ck["light_optimizer"])
+    state.occupancy = OccupancyGrid.from_state_dict(ck["occupancy"]).to(state.device)
+    state.generator.set_state(ck["generator"])
+    state.step = int(ck["step"])
+    state.elapsed = float(ck["elapsed"])
+    state.snapshots_done = list(ck.get("snapshots_done", []))
+    return state
+
+
+# ============================================================================ the loop
+def _plot_curves(log_path: Path, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [json.loads(ln) for ln in log_path.read_text().splitlines() if ln.strip()]
+    rows = [r for r in rows if r.get("kind") == "train"]
+    if not rows:
+        return
+    keys = [k for k in ("loss", "rgb", "ssim", "psnr_loss", "mat", "eikonal", "orientation", "semantic", "light_reg", "distortion")
+            if any(k in r for r in rows)]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for k in keys:
+        xs = [r["step"] for r in rows if k in r]
+        ys = [r[k] for r in rows if k in r]
+        if k == "psnr":
+            continue
+        axes[0].plot(xs, ys, label=f"L_{k}" if k != "loss" else "L_total")
+    axes[0].set_yscale("symlog", linthresh=1e-3)
+    axes[0].set_xlabel("step")
+    axes[0].set_title("training losses (Fig. 6)")
+    axes[0].legend(fontsize=7)
+    axes[1].plot([r["step"] for r in rows], [r["psnr"] for r in rows], color="tab:green")
+    axes[1].set_xlabel("step")
+    axes[1].set_ylabel("batch PSNR (dB)")
+    axes[1].set_title("training PSNR")
+    fig.tight_layout()
+    tmp = out.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, out)
+
+
+def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume: bool = False, split: str = "train",
+          progress_bar: bool = True, log=None, stop_at: int | None = None,
+          priors_root: str | Path | None = None) -> Path:
+    """Train on ``scene_path`` into the run directory ``out_dir``; returns the checkpoint path.
+
+    With ``resume`` the run continues from ``out_dir/checkpoint.pt`` with the saved config (``cfg`` may only
+    raise ``steps``/``minutes``). Without it, an existing run directory with a checkpoint is refused (nothing
+    is overwritten). ``stop_at`` ends this call after that step (checkpointed) without changing the run's
+    schedule, so a later ``resume`` continues exactly (time-sliced jobs). ``priors_root``: where the prior
+    stages wrote their outputs (default: next to the scene); recorded in the run.
+    """
+    from tqdm import tqdm
+
+    log = log or (lambda m: print(m, file=sys.stderr))
+    out = Path(out_dir)
+    ck_path = out / "checkpoint.pt"
+    cfg_path = out / "config.json"
+    if resume:
+        if not ck_path.is_file():
+            raise DarsError(f"--resume: no checkpoint at {ck_path}")
+        saved = json.loads(cfg_path.read_text())
+        base = TrainConfig.from_dict(saved["config"])
+        steps = base.steps
+        if cfg.steps:
+            steps = max(cfg.steps, base.steps)
+        elif cfg.minutes and base.minutes and cfg.minutes > base.minutes and base.steps:  # a longer budget, same rate
+            steps = int(round(base.steps * cfg.minutes / base.minutes))
+        cfg = replace(base, steps=steps, minutes=max(cfg.minutes, base.minutes))
+        saved_calibration = saved.get("calibration")
+        scene_path = saved["scene"]
+        split = saved.get("split", split)
+        priors_root = saved.get("priors_root")
+    else:
+        saved_calibration = None
+    if not resume and ck_path.exists():
+        raise DarsError(f"{out} already holds a run (checkpoint.pt); pass --resume to continue it or choose another --out")
+    if not cfg.steps and not cfg.minutes:
+        raise ConfigError("give a training length: --steps N or --minutes M")
+    if cfg.device != "auto" and cfg.device.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"device={cfg.device} requested but CUDA is not available")
+    scene = load_scene(scene_path, split)
+    cfg, scene = resolve_config(cfg, scene, log)
+    out.mkdir(parents=True, exist_ok=True)
+    data = prepare_data(scene, cfg, log, priors_root)
+    state = init_state(cfg, data)
+    if resume:
+        load_checkpoint(ck_path, state)
+        log(f"[dars] resumed {out} at step {state.step} ({state.elapsed / 60:.1f} min)")
+
+    def write_run_config(calibration):
+        write_json(cfg_path, {"config": cfg.to_dict(), "scene": str(Path(scene_path).resolve()), "split": split,
+                              "priors_root": str(Path(priors_root).resolve()) if priors_root else None,
+                              "priors": data.priors_used, "l_env_init": data.l_env_init.tolist(),
+                              "l_env_source": data.l_env_source, "torch": torch.__version__,
+                              "calibration": calibration})
+
+    write_run_config(saved_calibration)
+    log_path = out / "log.jsonl"
+    if not resume and log_path.exists():
+        log_path.unlink()
+    total = cfg.steps if cfg.steps else None
+    bar = tqdm(total=total, initial=state.step, disable=not progress_bar, file=sys.stderr, dynamic_ncols=True,
+               unit="step", desc="train")
+    t_last_ck = time.monotonic()
+    t_window = None
+    last = {}
+    try:
+        while True:
+            if cfg.steps and state.step >= cfg.steps:
+                break
+            if stop_at is not None and state.step >= stop_at:
+                break
+            t0 = time.monotonic()
+            _set_lr(state)
+            if state.step % cfg.occupancy_every == 0:
+                state.occupancy.update(state.field.density, state.generator,
+                                       all_cells=state.step < cfg.occupancy_warmup,
+                                       warmup=state.step < cfg.occupancy_warmup)
+            in_b = progress(state) >= cfg.pretrain_fraction
+            if (in_b and not cfg.fixed_light and cfg.shading == "pbr"
+                    and state.step % cfg.light_period < cfg.light_steps):
+                res = light_step(state, data)
+                res["stage"] = "b-light"
+            else:
+                res = train_step(state, data)
+            state.step += 1
+            state.elapsed += time.monotonic() - t0
+            last.update(res)
+            if not cfg.steps:  # a minutes budget: fix the step count once the first steps are timed
+                n_win = max(1, min(24, cfg.calibration_steps // 4))
+                if state.step == cfg.calibration_steps - n_win:
+                    t_window = state.elapsed
+                if state.step >= cfg.calibration_steps or state.elapsed >= 60.0 * cfg.minutes:
+                    full = state.step >= cfg.calibration_steps and t_window is not None
+                    rec = calibrate_steps(state, cfg.minutes, state.elapsed - (t_window if full else 0.0),
+                                          n_win if full else state.step, log)
+                    cfg = replace(cfg, steps=rec["steps"])
+                    state.cfg = cfg
+                    bar.total = cfg.steps
+                    write_run_config(rec)
+            if state.step % cfg.log_every == 0 or state.step == 1:
+                rec = {"kind": "train", "step": state.step, "elapsed": round(state.elapsed, 2),
+                       "lr": state.optimizer.param_groups[0]["lr"], "occupancy": state.occupancy.occupancy_fraction(),
+                       **{k: v for k, v in last.items()}}
+                with open(log_path, "a") as f:
+                    f.write(json.dumps(rec) + "\n")
+            for m in cfg.snapshot_minutes:
+                if m not in state.snapshots_done and state.elapsed >= 60.0 * m:
+                    save_checkpoint(state, out / "snapshots" / f"checkpoint_{m:g}min.pt")
+                    state.snapshots_done.append(m)
+            if state.step % cfg.checkpoint_every == 0 or time.monotonic() - t_last_ck > 300:
+                save_checkpoint(state, ck_path)
+                t_last_ck = time.monotonic()
+            bar.update(1)
+            if "psnr" in last:
+                bar.set_postfix_str(f"loss {last.get('loss', float('nan')):.4f} psnr {last['psnr']:.2f} "
+                                    f"{last.get('stage', '')}".strip())
+    except TrainingDiverged as e:
+        bar.close()
+        log(f"[dars] {e}")
+        raise
+    except KeyboardInterrupt:
+        bar.close()
+        save_checkpoint(state, ck_path)
+        log(f"[dars] interrupted at step {state.step}; checkpoint saved, continue with --resume")
+        raise
+    bar.close()
+    save_checkpoint(state, ck_path)
+    for m in cfg.snapshot_minutes:  # a budget that ends exactly at a milestone
+        if m not in state.snapshots_done and state.elapsed >= 60.0 * m - 1.0:
+            save_checkpoint(state, out / "snapshots" / f"checkpoint_{m:g}min.pt")
+    try:
+        _plot_curves(log_path, out / "loss_curves.png")
+    except Exception as e:  # noqa: BLE001 - a plot must never lose a finished run
+        log(f"[dars] could not plot loss curves: {e}")
+    log(f"[dars] trained {state.step} steps in {state.elapsed / 60:.1f} min -> {ck_path}")
+    return ck_path

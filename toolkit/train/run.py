@@ -1,0 +1,231 @@
+"""A trained run: :func:`load_run` reads a run directory written by :func:`~toolkit.train.train` into a :class:`Run`
+(field, background, light, occupancy, the training scene and its W maps) for rendering, evaluation and export;
+:func:`field_callables` / :func:`load_field_callables` give the meshing and baking stages the field as callables.
+
+Example:
+    >>> run = load_run("out/run")                                   # doctest: +SKIP
+    >>> img = run.render(run.train_scene.cameras, 0)               # a RenderedImage  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import torch
+
+from .._checks import DarsError
+from ..cameras import Cameras
+from ..field import DarsField
+from ..pipeline import Background, RenderConfig, RenderedImage, RenderInputs, render_dars_context, render_image
+from ..priors import priors_path
+from ..sampling import OccupancyGrid
+from ..scene import Scene, load_scene
+from .config import TrainConfig
+from .data import prepare_data
+
+__all__ = ["Run", "load_run", "render_views", "FieldCallables", "field_callables", "load_field_callables"]
+
+
+@dataclass
+class Run:
+    """A trained run loaded for rendering, evaluation and export (:func:`load_run`).
+
+    Attributes:
+        path: the run directory.
+        cfg: its :class:`~toolkit.train.TrainConfig` (``config.json``).
+        scene_path, split: the scene and split it trained on.
+        field, background, l_env, occupancy: the trained state (l_env: float [9, 3] SH light).
+        train_scene: the training split (its box, near/far and cameras are the run's).
+        weight_maps: float [V, H, W] W maps of the training views (DARS at render time), or None.
+        step, elapsed: training steps and seconds done.
+        meta: ``config.json`` as a dict (priors used, initial light, ...).
+    """
+
+    path: Path
+    cfg: TrainConfig
+    scene_path: str
+    split: str
+    field: DarsField
+    background: Background
+    l_env: torch.Tensor
+    occupancy: OccupancyGrid
+    train_scene: Scene
+    weight_maps: torch.Tensor | None
+    step: int
+    elapsed: float
+    meta: dict
+
+    def dars_for(self, c2w: torch.Tensor):
+        """DARS render context for a camera pose (None when the run has DARS off)."""
+        if not self.cfg.render_sampler.dars or self.weight_maps is None:
+            return None
+        return render_dars_context(self.train_scene.cameras, self.weight_maps, c2w, self.cfg.render_sampler.n_neighbours)
+
+    def priors_dir(self, stage: str) -> Path:
+        """Where this run read (or would have read) the ``stage`` prior: ``--priors DIR`` if training had one."""
+        return priors_path(self.train_scene, stage, self.meta.get("priors_root"))
+
+    def render_config(self, **overrides) -> RenderConfig:
+        """This run's :class:`~toolkit.pipeline.RenderConfig`: its ``render_sampler``, shading, ``deferred`` setting and
+        the training scene's near/far; ``overrides`` replace fields (e.g. ``sampler=...``, ``deferred=False``)."""
+        cfg = RenderConfig(sampler=self.cfg.render_sampler, shading=self.cfg.shading, deferred=self.cfg.deferred,
+                           near=self.train_scene.near, far=self.train_scene.far)
+        return replace(cfg, **overrides)
+
+    def render(self, cameras: Cameras, index: int, *, l_env: torch.Tensor | None = None,
+               outputs_hook: Callable | None = None, **overrides) -> RenderedImage:
+        """Render every output of camera ``index`` with this run's settings (:func:`toolkit.pipeline.render_image`).
+
+        Args:
+            cameras: the cameras (any split, or a path such as :func:`toolkit.cameras.orbit_cameras`).
+            index: which camera.
+            l_env: float [9, 3] global light instead of the run's (None: the run's).
+            outputs_hook: see :func:`toolkit.pipeline.render_rays` (relighting, material edits).
+            **overrides: :class:`~toolkit.pipeline.RenderConfig` fields (``sampler``, ``deferred``, ``chunk`` ...).
+                The DARS context of the camera is used when the sampler has DARS on (and the run has W maps).
+        """
+        cfg = self.render_config(**overrides)
+        dars = self.dars_for(cameras.c2w[index]) if cfg.sampler.dars else None
+        inputs = RenderInputs(self.occupancy, self.l_env if l_env is None else l_env, self.background,
+                              self.train_scene.aabb.to(cameras.device), dars)
+        return render_image(self.field, cameras, index, cfg, inputs, outputs_hook)
+
+
+def load_run(run_dir: str | Path, checkpoint: str | Path | None = None, device: str = "cpu",
+             with_weights: bool = True) -> Run:
+    """Load a run directory written by :func:`train` (``checkpoint`` picks a snapshot)."""
+    run_dir = Path(run_dir)
+    cfg_path = run_dir / "config.json"
+    ck_path = Path(checkpoint) if checkpoint else run_dir / "checkpoint.pt"
+    if not cfg_path.is_file() or not ck_path.is_file():
+        raise DarsError(f"{run_dir} is not a training run (needs config.json and checkpoint.pt); "
+                        "create one with `dars train SCENE --out RUN`")
+    meta = json.loads(cfg_path.read_text())
+    cfg = TrainConfig.from_dict(meta["config"])
+    ck = torch.load(ck_path, map_location=device, weights_only=False)
+    scene = load_scene(meta["scene"], meta.get("split", "train"))
+    if cfg.scene_box is not None:  # the box the run was trained with (fitted to the data when the file has none)
+        scene = replace(scene, aabb=torch.tensor(cfg.scene_box, dtype=torch.float32))
+    fld = DarsField(cfg.field, scene.aabb).to(device)
+    fld.load_state_dict(ck["field"])
+    fld.eval()
+    bg = Background(ck.get("background_mode", "env"))
+    bg.load_state_dict(ck["background"])
+    wm = None
+    if with_weights and cfg.render_sampler.dars:
+        data_cfg = replace(cfg, albedo_supervision=False)
+        wm = prepare_data(scene, data_cfg, log=lambda m: None, priors_root=meta.get("priors_root")).weights
+    return Run(path=run_dir, cfg=cfg, scene_path=meta["scene"], split=meta.get("split", "train"), field=fld,
+               background=bg.to(device), l_env=ck["l_env"].to(device),
+               occupancy=OccupancyGrid.from_state_dict(ck["occupancy"]).to(device), train_scene=scene,
+               weight_maps=wm, step=int(ck["step"]), elapsed=float(ck["elapsed"]), meta=meta)
+
+
+def render_views(run: Run, cameras: Cameras, keys: list[str], out_dir: str | Path, *, limit: int = 0,
+                 l_env: torch.Tensor | None = None, outputs_hook: Callable | None = None,
+                 progress: bool = True) -> list[str]:
+    """Render cameras with the run's settings and write every decomposed output as ``<key>_<output>.png``.
+
+    Args:
+        run: the run.
+        cameras: the views; ``keys`` [len(cameras)] names their files.
+        out_dir: output folder.
+        limit: render at most this many views (0: all).
+        l_env, outputs_hook: see :meth:`Run.render` (relighting, material edits).
+        progress: a progress bar on stderr.
+
+    Returns:
+        the paths written, view by view (outputs in :func:`toolkit.visualise.render_output_images` order).
+    """
+    from tqdm import tqdm
+
+    from ..io import write_png
+    from ..visualise import render_output_images
+
+    out = Path(out_dir)
+    n = len(cameras) if not limit else min(limit, len(cameras))
+    written = []
+    for i in tqdm(range(n), desc="render", file=sys.stderr, disable=not progress):
+        image = run.render(cameras, i, l_env=l_env, outputs_hook=outputs_hook)
+        for name, img in render_output_images(image, srgb=run.train_scene.srgb).items():
+            p = out / f"{keys[i]}_{name}.png"
+            write_png(p, img)
+            written.append(str(p))
+    return written
+
+
+class FieldCallables(NamedTuple):
+    """A trained field as callables for meshing and baking (:func:`load_field_callables`).
+
+    Attributes:
+        density_fn: ``density_fn(points [N, 3]) -> [N]`` σ in 1/metre.
+        material_fn: ``material_fn(points [N, 3], normals=None) -> dict`` (see :func:`field_callables`).
+        aabb: float [2, 3] scene box, metres.
+        sh: float [9, 3] the run's global SH light, or None.
+        cameras: the training cameras (TSDF fusion, unseen-face removal), or None.
+    """
+
+    density_fn: Callable
+    material_fn: Callable
+    aabb: torch.Tensor
+    sh: torch.Tensor | None
+    cameras: Cameras | None
+
+
+def field_callables(run: Run, chunk: int = 65536):
+    """(density_fn, material_fn) of a loaded run, for meshing and baking (no gradients, chunked).
+
+    ``density_fn(points [N, 3]) -> [N]``; ``material_fn(points [N, 3], normals=None) -> dict`` with ``albedo``
+    [N, 3] (linear), ``roughness`` [N], ``metallic`` [N], ``normal`` [N, 3] (the normal head, unit) and
+    ``semantic`` [N] (argmax class id). A ``radiance`` run (standard NeRF) has no materials: its albedo is
+    its view-averaged radiance seen from above and roughness/metallic take defaults (1, 0).
+    """
+    fld = run.field
+    dev = next(fld.parameters()).device
+
+    @torch.no_grad()
+    def density_fn(points: torch.Tensor) -> torch.Tensor:
+        pts = torch.as_tensor(points, dtype=torch.float32)
+        return torch.cat([fld.density(pts[i:i + chunk].to(dev)).cpu() for i in range(0, pts.shape[0], chunk)]) \
+            if pts.shape[0] else pts.new_zeros(0)
+
+    @torch.no_grad()
+    def material_fn(points: torch.Tensor, normals: torch.Tensor | None = None) -> dict:
+        pts = torch.as_tensor(points, dtype=torch.float32)
+        keys = ("albedo", "roughness", "metallic", "normal", "semantic")
+        parts: dict[str, list] = {k: [] for k in keys}
+        for i in range(0, pts.shape[0], chunk):
+            p = pts[i:i + chunk].to(dev)
+            if run.cfg.shading == "pbr":
+                o = fld(p, None, None, "pbr")
+                parts["albedo"].append(o.albedo.cpu())
+                parts["roughness"].append(o.roughness.cpu())
+                parts["metallic"].append(o.metallic.cpu())
+            else:
+                d = torch.tensor([[0.0, 0.0, -1.0]], device=dev).expand(p.shape[0], 3)
+                o = fld(p, d, None, "radiance")
+                parts["albedo"].append(o.radiance.cpu())
+                parts["roughness"].append(torch.ones(p.shape[0]))
+                parts["metallic"].append(torch.zeros(p.shape[0]))
+            parts["normal"].append(o.normal.cpu())
+            parts["semantic"].append(o.semantic_logits.argmax(-1).cpu())
+        return {k: torch.cat(v) for k, v in parts.items()}
+
+    return density_fn, material_fn
+
+
+def load_field_callables(run_dir: str | Path, checkpoint: str | Path | None = None) -> FieldCallables:
+    """:class:`FieldCallables` ``(density_fn, material_fn, aabb [2, 3], sh [9, 3], cameras)`` of a run directory (see
+    :func:`field_callables`); ``cameras`` are the training cameras (for TSDF fusion and unseen-face removal).
+
+    Raises:
+        DarsError: ``run_dir`` is not a training run.
+    """
+    run = load_run(run_dir, checkpoint, with_weights=False)
+    d, m = field_callables(run)
+    return FieldCallables(d, m, run.train_scene.aabb.clone(), run.l_env.detach().cpu().clone(),
+                          run.train_scene.cameras)

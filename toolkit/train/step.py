@@ -1,0 +1,346 @@
+"""One training step: the explicit training state (:func:`init_state`), ray batches (:func:`sample_batch`), the field
+step (:func:`train_step`, eqs. 21 and 23) and the light step (:func:`light_step`, eq. 22)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from dataclasses import field as dc_field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from .._checks import DarsError
+from ..field import DarsField
+from ..io import linear_to_srgb, srgb_to_linear
+from ..losses import (compactness_loss, light_residual_loss, material_loss, normal_consistency_loss, orientation_loss, psnr_loss, rgb_l1,
+                      semantic_loss, ssim_loss)
+from ..pipeline import Background, DarsContext, RenderConfig, RenderInputs, render_rays
+from ..sampling import OccupancyGrid, build_ray_sampler, neighbour_views, select_rays
+from ..scene import Scene, generate_rays
+from .config import SHELL_FADE, TrainConfig, photos_have_transparency
+from .data import TrainData
+
+__all__ = ["TrainingDiverged", "TrainState", "Batch", "MAX_BAD_STEPS", "init_state", "progress", "lr_progress",
+           "calibrate_steps", "sample_batch", "train_step", "light_step"]
+
+
+class TrainingDiverged(DarsError):
+    """The loss became NaN or inf; the last good checkpoint is kept."""
+
+
+@dataclass
+class TrainState:
+    cfg: TrainConfig
+    field: DarsField
+    background: Background
+    l_env: nn.Parameter
+    colour: nn.Module | None
+    optimizer: torch.optim.Optimizer
+    light_optimizer: torch.optim.Optimizer
+    occupancy: OccupancyGrid
+    generator: torch.Generator
+    ray_sampler: Any
+    dars: DarsContext
+    device: torch.device
+    step: int = 0
+    elapsed: float = 0.0
+    snapshots_done: list = dc_field(default_factory=list)
+    bad_steps: int = 0
+    """Consecutive steps skipped for non-finite gradients (see :data:`MAX_BAD_STEPS`)."""
+
+
+MAX_BAD_STEPS = 5
+"""A step whose gradients are not finite is skipped (no update); this many in a row stop the run."""
+
+
+def _device(cfg: TrainConfig) -> torch.device:
+    if cfg.device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(cfg.device)
+
+
+def _border_colour(images: torch.Tensor, srgb: bool) -> tuple[float, float, float]:
+    """Median colour (linear) of the outermost pixel ring of all training images: the background a learned
+    background model starts from (starting it wrong lets the optimiser hide it behind a shell of density)."""
+    ring = torch.cat([images[:, :, 0, :], images[:, :, -1, :], images[:, :, :, 0], images[:, :, :, -1]], -1)
+    med = ring.permute(1, 0, 2).reshape(3, -1).median(-1).values
+    lin = srgb_to_linear(med) if srgb else med
+    return tuple(float(c) for c in lin.clamp(0.0, 1.0))
+
+
+def _background_for(scene: Scene, cfg: TrainConfig, images: torch.Tensor | None = None) -> Background:
+    mode = cfg.background
+    if mode == "auto":
+        mode = "constant" if cfg.scene_type == "object" and photos_have_transparency(scene) else "env"
+    if mode == "constant" or images is None:
+        colour = tuple(float(c) for c in srgb_to_linear(np.asarray(scene.background, np.float64)))
+    else:
+        colour = _border_colour(images, scene.srgb)
+    return Background(mode, colour)
+
+
+def init_state(cfg: TrainConfig, data: TrainData) -> TrainState:
+    """Fresh training state for ``data`` (seeded)."""
+    dev = _device(cfg)
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    scene = data.scene
+    fld = DarsField(cfg.field, scene.aabb).to(dev)
+    bg = _background_for(scene, cfg, data.images).to(dev)
+    l_env = nn.Parameter(data.l_env_init.clone().to(dev))
+    colour = None
+    if cfg.colour_correction == "on" or (cfg.colour_correction == "auto" and data.colour_init is not None):
+        from ..colour import ColourCorrection
+
+        colour = ColourCorrection(len(scene), data.colour_init).to(dev)
+    grid_params = [p for n, p in fld.named_parameters() if n.startswith("grid.")]
+    net_params = [p for n, p in fld.named_parameters() if not n.startswith("grid.")]
+    groups = [{"params": net_params, "lr": cfg.lr_net, "weight_decay": cfg.weight_decay, "name": "net"}]
+    if grid_params:
+        groups.append({"params": grid_params, "lr": cfg.lr_grid, "weight_decay": 0.0, "name": "grid"})
+    if list(bg.parameters()):
+        groups.append({"params": list(bg.parameters()), "lr": cfg.lr_grid, "weight_decay": 0.0, "name": "background"})
+    if colour is not None:
+        groups.append({"params": list(colour.parameters()), "lr": cfg.lr_colour, "weight_decay": 0.0, "name": "colour"})
+    opt = torch.optim.AdamW(groups, betas=(0.9, 0.99), eps=1e-15)
+    for g in opt.param_groups:
+        g["initial_lr"] = g["lr"]
+    light_opt = torch.optim.Adam([l_env], lr=cfg.lr_light, betas=(0.9, 0.99))
+    for g in light_opt.param_groups:
+        g["initial_lr"] = g["lr"]
+    V, H, W = data.weights.shape
+    extent = float((scene.aabb[1] - scene.aabb[0]).norm())
+    occ = OccupancyGrid(scene.aabb, cfg.occupancy_resolution, step=extent / 1024.0, contraction=cfg.field.contraction,
+                        far_radius=cfg.field.far_radius).to(dev)
+    ray_sampler = build_ray_sampler(data.weights if cfg.sampler.dars else None, (V, H, W), cfg.sampler.rho)
+    nb = neighbour_views(scene.cameras, cfg.sampler.n_neighbours)
+    dars = DarsContext(scene.cameras.to(dev), data.weights.to(dev), nb.to(dev))
+    return TrainState(cfg=cfg, field=fld, background=bg, l_env=l_env, colour=colour, optimizer=opt,
+                      light_optimizer=light_opt, occupancy=occ, generator=gen, ray_sampler=ray_sampler, dars=dars,
+                      device=dev)
+
+
+def progress(state: TrainState) -> float:
+    """Fraction of the run done, in [0, 1], by steps (a ``minutes`` budget is turned into steps by
+    :func:`calibrate_steps`; until then the run is in its first, length-independent steps: 0)."""
+    cfg = state.cfg
+    return min(1.0, state.step / cfg.steps) if cfg.steps else 0.0
+
+
+def lr_progress(state: TrainState) -> float:
+    """Fraction of the learning-rate decay done: none during the first :attr:`TrainConfig.calibration_steps`
+    steps (their schedule must not depend on the run's length), then exponential decay to the end."""
+    cfg = state.cfg
+    k = min(cfg.calibration_steps, max(0, cfg.steps - 1)) if cfg.steps else cfg.calibration_steps
+    if not cfg.steps or state.step <= k:
+        return 0.0
+    return min(1.0, (state.step - k) / max(1, cfg.steps - k))
+
+
+def calibrate_steps(state: TrainState, budget_minutes: float, t_window: float, n_window: int, log=print) -> dict:
+    """Turn a wall-clock budget into the run's step count, once, after :attr:`TrainConfig.calibration_steps`:
+    the seconds per step of the last ``n_window`` steps (after the occupancy warm-up, when a step costs what it
+    will cost for the rest of the run) divide what is left of the budget. The run then follows a step schedule, so
+    ``--steps N`` with the logged N reproduces it exactly on any machine (the first ``calibration_steps`` steps
+    do not depend on the run's length). Returns the record kept in ``config.json``."""
+    per_step = t_window / max(1, n_window)
+    left = 60.0 * budget_minutes - state.elapsed
+    steps = max(state.step, state.step + int(left / per_step))
+    rec = {"minutes": budget_minutes, "seconds_per_step": round(per_step, 4), "at_step": state.step,
+           "elapsed": round(state.elapsed, 2), "steps": steps}
+    log(f"[dars] timing calibration: {per_step:.3f} s/step on this machine -> {steps} steps for {budget_minutes:g} min "
+        f"(reproduce exactly with --steps {steps})")
+    return rec
+
+
+# ============================================================================ one step
+@dataclass
+class Batch:
+    rays: Any
+    target: torch.Tensor  # [R, 3] as stored
+    iw: torch.Tensor  # [R]
+    views: torch.Tensor  # [R]
+    labels: torch.Tensor | None
+    metal: torch.Tensor | None
+    wray: torch.Tensor  # [R] W at each pixel
+    albedo_gt: torch.Tensor | None
+    n_random: int
+    patch_iw: torch.Tensor | None  # [P]
+
+
+def sample_batch(state: TrainState, data: TrainData) -> Batch:
+    cfg = state.cfg
+    gen = state.generator
+    V, _, H, W = data.images.shape
+    s = cfg.ssim_patch_size
+    P = cfg.ssim_patches if (cfg.losses.ssim > 0 and H > s and W > s) else 0
+    n_rand = cfg.batch_rays - P * s * s
+    idx, iw = select_rays(state.ray_sampler, n_rand, gen)
+    views, rem = idx // (H * W), idx % (H * W)
+    rows, cols = rem // W, rem % W
+    patch_iw = None
+    if P:
+        pidx, patch_iw = select_rays(state.ray_sampler, P, gen)
+        pv, prem = pidx // (H * W), pidx % (H * W)
+        pr = (prem // W - s // 2).clamp(0, H - s)
+        pc = (prem % W - s // 2).clamp(0, W - s)
+        dr, dc = torch.meshgrid(torch.arange(s), torch.arange(s), indexing="ij")
+        views = torch.cat([views, pv.repeat_interleave(s * s)])
+        rows = torch.cat([rows, (pr[:, None] + dr.reshape(1, -1)).reshape(-1)])
+        cols = torch.cat([cols, (pc[:, None] + dc.reshape(1, -1)).reshape(-1)])
+        iw = torch.cat([iw, patch_iw.repeat_interleave(s * s)])
+    dev = state.device
+    cams = state.dars.cameras
+    scene = data.scene
+    bounds = state.field.space if state.cfg.field.contraction else scene.aabb.to(dev)
+    rays = generate_rays(cams, views.to(dev), pixels=torch.stack([cols, rows], -1).to(dev),
+                         aabb=bounds, near=scene.near, far=scene.far)
+    target = data.images[views, :, rows, cols].to(dev)
+    labels = data.labels[views, rows, cols].long().to(dev) if data.labels is not None else None
+    metal = data.metal[views, rows, cols].to(dev) if data.metal is not None else None
+    albedo_gt = data.albedo_gt[views, :, rows, cols].to(dev) if data.albedo_gt is not None else None
+    wray = data.weights[views, rows, cols].to(dev)
+    return Batch(rays, target, iw.to(dev), views.to(dev), labels, metal, wray, albedo_gt, n_rand,
+                 None if patch_iw is None else patch_iw.to(dev))
+
+
+def _to_target_space(state: TrainState, data: TrainData, rgb_linear: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
+    if state.colour is not None:
+        rgb_linear = state.colour(rgb_linear, views)
+    # clamp forward, pass the gradient straight through: a hard clamp has zero gradient where the shaded colour
+    # overshoots (e.g. a bright initial light on a white-background scene) and the run would stay saturated
+    rgb_linear = rgb_linear - (rgb_linear - rgb_linear.clamp(0.0, 1.0)).detach()
+    return linear_to_srgb(rgb_linear) if data.scene.srgb else rgb_linear
+
+
+def _render(state: TrainState, batch: Batch, l_env: torch.Tensor):
+    cfg = state.cfg
+    rcfg = RenderConfig(sampler=cfg.sampler, shading=cfg.shading, deferred=cfg.deferred)
+    inputs = RenderInputs(state.occupancy, l_env, state.background, dars=state.dars if cfg.sampler.dars else None)
+    return render_rays(state.field, batch.rays, rcfg, inputs, batch.wray if cfg.sampler.dars else None,
+                       state.generator)
+
+
+def _density_gradient(fld: DarsField, points: torch.Tensor, eps: float) -> torch.Tensor:
+    offs = torch.eye(3, device=points.device, dtype=points.dtype) * eps
+    pts = torch.cat([points + o for o in offs] + [points - o for o in offs])
+    sig = fld.density(pts).reshape(6, -1)
+    return torch.stack([(sig[i] - sig[i + 3]) / (2 * eps) for i in range(3)], -1)
+
+
+def train_step(state: TrainState, data: TrainData) -> dict:
+    """One field step (stage a: eq. 21; stage b: eq. 23). Returns the logged scalars."""
+    cfg, lw = state.cfg, state.cfg.losses
+    stage_b = progress(state) >= cfg.pretrain_fraction
+    if hasattr(state.field, "shell_weight"):  # the room prior fades in over SHELL_FADE of the run after stage (a)
+        w = min(1.0, max(0.0, (progress(state) - cfg.pretrain_fraction) / SHELL_FADE))
+        if w > 0.0 and float(state.field.shell_weight) == 0.0:
+            # the environment learned the room's walls in stage (a); left as it is, the optimiser would cancel the
+            # layer wherever the environment already explains the photo. It restarts dark and relearns only what
+            # is seen through the faces without a layer (sky, open doors).
+            with torch.no_grad():
+                for p in state.background.parameters():
+                    p.copy_(state.background.dark_raw().to(p))
+                    state.optimizer.state.pop(p, None)
+        state.field.shell_weight.fill_(w)
+    batch = sample_batch(state, data)
+    out = _render(state, batch, state.l_env.detach())
+    pred = _to_target_space(state, data, out.rgb, batch.views)
+    terms: dict[str, torch.Tensor] = {}
+    terms["rgb"] = rgb_l1(pred, batch.target, batch.iw)
+    if batch.patch_iw is not None:
+        s, P = cfg.ssim_patch_size, batch.patch_iw.shape[0]
+        pp = pred[batch.n_random:].reshape(P, s, s, 3).permute(0, 3, 1, 2)
+        tp = batch.target[batch.n_random:].reshape(P, s, s, 3).permute(0, 3, 1, 2)
+        terms["ssim"] = ssim_loss(pp, tp, batch.patch_iw)
+    if cfg.shading == "pbr" and lw.mat > 0:
+        terms["mat"] = material_loss(out.albedo, out.roughness, out.metallic, batch.labels, batch.metal,
+                                     batch.albedo_gt, batch.iw)
+    if stage_b:
+        terms["psnr_loss"] = psnr_loss(pred, batch.target, batch.iw)
+        if lw.eikonal > 0 and state.step >= lw.eikonal_start and out.weights.numel():
+            m = min(2048, out.weights.numel())
+            sel = torch.multinomial(out.weights.detach().float() + 1e-8, m, replacement=False, generator=state.generator
+                                    if out.weights.device.type == "cpu" else None)
+            ext = float((data.scene.aabb[1] - data.scene.aabb[0]).mean())
+            grad = _density_gradient(state.field, out.sample_points[sel].detach(), ext / 512.0)
+            if out.deferred:
+                n_pred = nn.functional.normalize(state.field.normal_head(out.sample_features[sel]), dim=-1, eps=1e-6)
+            else:
+                n_pred = state.field(out.sample_points[sel].detach(), shading="none").normal
+            terms["eikonal"] = normal_consistency_loss(n_pred, grad, out.weights[sel])
+    if cfg.shading == "pbr" and lw.orientation > 0 and out.weights.numel():
+        if out.sample_normals is not None:
+            terms["orientation"] = orientation_loss(out.sample_normals, batch.rays.directions[out.sample_ray_indices],
+                                                    out.weights)
+        else:
+            terms["orientation"] = orientation_loss(out.normal, batch.rays.directions, out.opacity)
+    if cfg.semantics and batch.labels is not None and lw.semantic > 0:
+        terms["semantic"] = semantic_loss(out.semantic_logits, batch.labels, batch.iw)
+    if out.light_residual is not None and lw.light_reg > 0 and out.weights.numel():
+        lw_w = out.opacity if out.deferred else out.weights
+        terms["light_reg"] = light_residual_loss(out.light_residual, state.l_env, lw_w)
+    if lw.compactness > 0 and out.sample_s is not None:
+        terms["compactness"] = compactness_loss(out.weights, out.sample_s[0], out.sample_s[1],
+                                                out.sample_ray_indices, len(batch.rays))
+    if state.colour is not None and lw.colour_reg > 0:
+        terms["colour_reg"] = state.colour.regulariser()
+    weight = {"rgb": lw.rgb, "ssim": lw.ssim, "mat": lw.mat, "psnr_loss": lw.psnr, "eikonal": lw.eikonal,
+              "orientation": lw.orientation, "semantic": lw.semantic, "light_reg": lw.light_reg, "colour_reg": lw.colour_reg,
+              "compactness": lw.compactness}
+    loss = sum(weight[k] * v for k, v in terms.items())
+    if not torch.isfinite(loss):
+        bad = [k for k, v in terms.items() if not torch.isfinite(v)]
+        raise TrainingDiverged(f"loss is {loss.item()} at step {state.step} (non-finite terms: {bad or 'sum'}); "
+                               "training stopped, the last good checkpoint is kept — lower the learning rate "
+                               "(--lr-scale) or check the input images")
+    state.optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    grads = [(g.get("name", "?"), p.grad) for g in state.optimizer.param_groups for p in g["params"]
+             if p.grad is not None]
+    finite = torch.stack([torch.isfinite(gr).all() for _, gr in grads]).tolist() if grads else []  # one sync per step
+    if not all(finite):
+        state.bad_steps += 1
+        state.optimizer.zero_grad(set_to_none=True)
+        if state.bad_steps >= MAX_BAD_STEPS:
+            bad = sorted({name for (name, _), ok in zip(grads, finite) if not ok})
+            raise TrainingDiverged(f"non-finite gradients in {bad} for {state.bad_steps} steps in a row "
+                                   f"(last at step {state.step}); training stopped, the last good checkpoint is kept "
+                                   "— lower the learning rate (--lr-scale) or check the input images")
+    else:
+        state.bad_steps = 0
+        state.optimizer.step()
+    with torch.no_grad():
+        mse = (pred - batch.target).square().mean()
+        res = {k: float(v) for k, v in terms.items()}
+        res.update(loss=float(loss), psnr=float(-10 * torch.log10(mse.clamp_min(1e-10))),
+                   distortion=float(data.distortion.mean()), samples_per_ray=float(out.samples_per_ray.float().mean()),
+                   fine_per_ray=float(out.fine_counts.float().mean()), stage="b" if stage_b else "a")
+        fc = out.fine_counts[out.fine_counts > 0]
+        if fc.numel():
+            res.update(fine_min=int(fc.min()), fine_max=int(fc.max()),
+                       fine_changed=float((fc != cfg.sampler.n_fine).float().mean()))
+    return res
+
+
+def light_step(state: TrainState, data: TrainData) -> dict:
+    """Eq. 22: the field fixed, l_env optimised on the L1 reprojection error."""
+    batch = sample_batch(state, data)
+    req = [p.requires_grad for p in state.field.parameters()]
+    for p in state.field.parameters():
+        p.requires_grad_(False)
+    try:
+        out = _render(state, batch, state.l_env)
+        pred = _to_target_space(state, data, out.rgb, batch.views)
+        loss = rgb_l1(pred, batch.target, batch.iw)
+        if not torch.isfinite(loss):
+            raise TrainingDiverged(f"light step loss is {loss.item()} at step {state.step}; training stopped")
+        state.light_optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        state.light_optimizer.step()
+    finally:
+        for p, r in zip(state.field.parameters(), req):
+            p.requires_grad_(r)
+    return {"reproj": loss.item()}
