@@ -10,6 +10,9 @@ Cases (``--case``, default ``all``):
 * ``tiny``     — tiny Lego (100 px; first 100 train, views 100-105 test): PSNR after 3, 5 and 10 minutes for
   ``--baseline nerf`` and the full decomposed model; the issue's reference figures for public CPU code on these
   cores are printed beside them (TensoRF 28.5 / 29.1 / 29.5 dB on a white-background copy).
+* ``galleries`` — every held-out validation gallery (``samples/galleries.py``: rendered on first use, cached), photos
+  and poses only: test PSNR, albedo MAE, normal MAE, mIoU, the exported GLB's median depth error on the test views
+  and its moderngl preview PSNR beside the field's; per gallery, mean and worst.
 * ``throughput`` — training and rendering rays/s and peak memory for ``mlp`` vs ``grid`` fields and DARS vs uniform
   sampling, on the sample, in one run (ratios against grid + uniform).
 
@@ -41,8 +44,11 @@ def _train(scene: str, out: Path, minutes: float, snapshots: str, threads: int, 
         import shutil
 
         shutil.rmtree(out)
-    cmd = [PY, "-m", "toolkit.cli", "train", scene, "--out", str(out), "--minutes", str(minutes), "--snapshots",
-           snapshots, "--threads", str(threads), "--quiet", *extra]
+    cmd = [PY, "-m", "toolkit.cli", "train", scene, "--out", str(out), "--threads", str(threads), "--quiet", *extra]
+    if minutes:
+        cmd += ["--minutes", str(minutes)]
+    if snapshots:
+        cmd += ["--snapshots", snapshots]
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     t0 = time.time()
     subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": str(threads)})
@@ -152,7 +158,7 @@ kw = json.loads(sys.argv[1])
 enc = kw.pop('encoding')
 scene = load_scene(%r, 'train')
 cfg = make_config('fast' if enc == 'grid' else 'paper', steps=100000, pretrain_fraction=0.0, **kw)
-cfg = resolve_config(cfg, scene)
+cfg, scene = resolve_config(cfg, scene)
 data = prepare_data(scene, cfg, log=lambda m: None)
 st = init_state(cfg, data)
 n_warm = 80 if enc == 'grid' else 5
@@ -191,9 +197,104 @@ print(json.dumps({'train_rays_s': cfg.batch_rays / dt, 'samples_per_ray': r['sam
     return res
 
 
+def _asset_depth_and_preview(run_dir: Path, asset_dir: Path, threads: int) -> dict:
+    """Median depth error of the exported GLB on the test views (against the scene's ground-truth depth), and the
+    moderngl preview's PSNR against the photos beside the field's own render's (all test views)."""
+    import numpy as np
+    import torch
+
+    from export.gltf import load_glb
+    from toolkit.io import linear_to_srgb
+    from toolkit.metrics import mesh_depth_error, psnr
+    from toolkit.pinhole import PinholeCamera
+    from toolkit.scene import load_scene
+    from toolkit.train import load_run
+    from viewers.preview import OffscreenPreview
+
+    torch.set_num_threads(threads)
+    run = load_run(run_dir)
+    sc = load_scene(run.scene_path, "test")
+    glb = asset_dir / "scene.glb"
+    asset = load_glb(glb)
+    verts, faces = asset.vertices, asset.faces
+    depth_med, cover, p_field, p_view = [], [], [], []
+    extent = float(np.linalg.norm((run.train_scene.aabb[1] - run.train_scene.aabb[0]).numpy()))
+    chw = lambda a: torch.as_tensor(np.asarray(a, np.float32)).permute(2, 0, 1)  # noqa: E731
+    with OffscreenPreview(glb) as view:
+        for i in range(len(sc)):
+            photo = sc.load_image(i)
+            if sc.has_extra("depth"):
+                e = mesh_depth_error(verts, faces, sc.cameras, i, sc.load_extra(i, "depth"))
+                depth_med.append(e["median"])
+                cover.append(e["coverage"])
+            with torch.no_grad():
+                o = run.render(sc.cameras, i)
+            p_field.append(float(psnr(linear_to_srgb(o.rgb.clamp(0, 1)).permute(2, 0, 1), photo)))
+            cam = PinholeCamera.from_cameras(sc.cameras, i, near=extent * 1e-3, far=extent * 10)
+            p_view.append(float(psnr(chw(view.render(cam).to_float()), photo)))
+    finite = [d for d in depth_med if np.isfinite(d)]
+    return {"depth_error_median_m": float(np.median(finite)) if finite else None,
+            "depth_coverage": float(np.mean(cover)) if cover else None,
+            "field_psnr": float(np.mean(p_field)), "preview_psnr": float(np.mean(p_view))}
+
+
+def case_galleries(seeds: list[int], minutes: float, steps: int, threads: int, out_dir: Path, train_seed: int,
+                   extra: list[str]) -> dict:
+    """Every validation gallery (photos + poses only: no box, no labels, no ground-truth light): train, evaluate,
+    export the GLB, measure its depth error and its moderngl preview; print each gallery, the mean and the worst."""
+    sys.path.insert(0, str(ROOT / "samples"))
+    from galleries import ensure_gallery
+
+    from toolkit.evaluate import EvalConfig, evaluate_run
+    from toolkit.train import load_run
+
+    rows = {}
+    for seed in seeds:
+        scene = ensure_gallery(seed, "validation")
+        run = out_dir / "galleries" / f"seed_{seed}" / "run"
+        asset = run.parent / "asset"
+        budget = ["--steps", str(steps)] if steps else ["--minutes", str(minutes)]
+        info = _train(str(scene), run, 0, "", threads, ["--seed", str(train_seed), *budget, *extra])
+        res = evaluate_run(load_run(run), "test", EvalConfig())
+        m = res.metrics
+        if asset.exists():
+            import shutil
+
+            shutil.rmtree(asset)
+        subprocess.run([PY, "-m", "toolkit.cli", "export-asset", str(run), "--out", str(asset), "--json"], check=True,
+                       cwd=ROOT, stdout=subprocess.DEVNULL, env={**os.environ, "OMP_NUM_THREADS": str(threads)})
+        geo = _asset_depth_and_preview(run, asset, threads)
+        rows[seed] = {"steps": info["steps"], "train_wall_s": info["wall_s"], "peak_rss_mb": info["peak_rss_mb"],
+                      "psnr": m.get("psnr"), "ssim": m.get("ssim"), "albedo_mae": m.get("albedo_mae"),
+                      "normal_mae": m.get("normal_mae"), "miou": m.get("miou"), "env_light_l2": m.get("env_light_l2"),
+                      **geo}
+        print(f"[galleries] seed {seed}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                                       for k, v in rows[seed].items()), flush=True)
+    keys = ["psnr", "albedo_mae", "normal_mae", "depth_error_median_m", "preview_psnr", "field_psnr", "miou", "steps"]
+    worse_high = {"albedo_mae", "normal_mae", "depth_error_median_m"}
+    table = [[f"seed {s}"] + [r.get(k) for k in keys] for s, r in rows.items()]
+
+    def agg(fn, k):
+        vals = [r[k] for r in rows.values() if r.get(k) is not None]
+        return fn(vals) if vals else None
+
+    table.append(["mean"] + [agg(lambda v: sum(v) / len(v), k) for k in keys])
+    table.append(["worst"] + [agg(max if k in worse_high else min, k) for k in keys])
+    print(_table(f"[galleries] {len(rows)} validation galleries, fast preset, "
+                 f"{'%d steps' % steps if steps else '%g min' % minutes}, {threads} threads, train seed {train_seed} "
+                 "(photos + poses only)", ["gallery"] + keys, table))
+    return rows
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--case", default="all", choices=["all", "sample", "lego", "tiny", "throughput"])
+    ap.add_argument("--case", default="all", choices=["all", "sample", "lego", "tiny", "throughput", "galleries"])
+    ap.add_argument("--galleries", default="all",
+                    help="galleries case: 'all' validation galleries, or the first N (a quick look; report all)")
+    ap.add_argument("--minutes", type=float, default=10.0, help="galleries case: training budget per gallery")
+    ap.add_argument("--steps", type=int, default=0, help="galleries case: a step budget instead of --minutes")
+    ap.add_argument("--seed", type=int, default=0, help="galleries case: training seed")
+    ap.add_argument("--train-args", default="", help="galleries case: extra `dars train` arguments (quoted)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=str(ROOT / "bench" / "out"))
     ap.add_argument("--variants", default="both", choices=["both", "full", "nerf"],
@@ -233,6 +334,13 @@ def main() -> int:
             step = max(1, 100 // args.lego_views)
             results[c] = case_quality("lego", str(d), [5, 15], "val", list(range(0, 100, step)), args.threads, out,
                                       pick({"full (fast)": [], "standard NeRF (fast)": ["--baseline", "nerf"]}))
+        elif c == "galleries":
+            sys.path.insert(0, str(ROOT / "samples"))
+            from galleries import VALIDATION_SEEDS
+
+            seeds = list(VALIDATION_SEEDS) if args.galleries == "all" else list(VALIDATION_SEEDS)[:int(args.galleries)]
+            results[c] = case_galleries(seeds, args.minutes, args.steps, args.threads, out, args.seed,
+                                        args.train_args.split())
         elif c == "throughput":
             results[c] = case_throughput(args.threads, out)
     out.mkdir(parents=True, exist_ok=True)

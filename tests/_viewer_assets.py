@@ -90,7 +90,7 @@ def surface_level(run: Path, samples: int = 200_000) -> float:
 
     from toolkit.train import load_field_callables
 
-    density_fn, _, aabb, _, _ = load_field_callables(run)
+    density_fn, _, aabb, _, _ = load_field_callables(run)[:5]
     gen = torch.Generator().manual_seed(0)
     pts = aabb[0] + torch.rand(samples, 3, generator=gen) * (aabb[1] - aabb[0])
     q = float(torch.quantile(density_fn(pts), 0.999))

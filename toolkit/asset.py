@@ -125,7 +125,7 @@ def asset_field(run: str | Path | Run | FieldCallables) -> FieldCallables:
     if isinstance(run, Run):
         d, m = field_callables(run)
         return FieldCallables(d, m, run.train_scene.aabb.clone(), run.l_env.detach().cpu().clone(),
-                              run.train_scene.cameras)
+                              run.train_scene.cameras, run.field.space.to("cpu") if run.cfg.field.contraction else None)
     run_dir = Path(run)
     if not run_dir.is_dir():
         raise DarsError(f"RUN directory not found: {run_dir} (give the --out directory of `dars train`)")
@@ -145,12 +145,17 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
         DarsError: the field gives an empty mesh, or ``tsdf`` without training cameras.
     """
     from .mesh import (DepthRenderConfig, MeshConfig, TsdfConfig, extract_mesh, fuse_tsdf, grid_spec, level_from_rays,
-                       query_vertex_attributes, remove_floaters, remove_unseen_faces, render_depth, simplify_mesh)
+                       query_vertex_attributes, remove_floaters, remove_unseen_faces, render_depth, simplify_mesh,
+                       surface_region)
 
-    density_fn, material_fn, aabb, _, cameras = field
+    density_fn, material_fn, aabb, _, cameras = field[:5]
+    space = field.space if isinstance(field, FieldCallables) else None
     stats: dict = {"method": cfg.method, "resolution": cfg.resolution}
     t0 = time.perf_counter()
     box = np.asarray(aabb.detach().cpu().numpy() if hasattr(aabb, "detach") else aabb, dtype=np.float64)
+    if space is not None and space.contraction and cameras is not None:
+        # unbounded field: mesh where the photos' rays find surfaces (walls, floor, objects), not the sky
+        box, stats["region"] = surface_region(density_fn, cameras, space, device=cfg.device)
     if cfg.method == "mc":
         level = cfg.level
         if level is None and cfg.level_quantile > 0 and cameras is not None:

@@ -114,6 +114,65 @@ def level_from_rays(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndar
     return level, {**rep, "level": level}
 
 
+def surface_region(density_fn: DensityFn, cameras, space, n_rays: int = 4096, samples: int = 256,
+                   quantile: float = 0.01, pad: float = 0.02, max_radius: float = 8.0, seed: int = 0,
+                   device: str = "cpu") -> tuple[np.ndarray, dict]:
+    """The region worth meshing in an unbounded (contracted) field: where the training rays reach half
+    transmittance.
+
+    ``n_rays`` training pixels are marched through all of space with ``samples`` samples uniform in contracted arc
+    length (:func:`toolkit.space.contracted_edges`); each ray's half-transmittance point is a surface the photos
+    see. Points beyond ``max_radius`` box half-sizes (sky, scenery through windows) are left out; the region is
+    the per-axis ``[quantile, 1 − quantile]`` range of the rest, padded by ``pad`` of its extent. Walls, floor and
+    objects become the mesh, the sky does not.
+
+    Args:
+        density_fn: σ(points float [N, 3]) -> float [N], 1/metre.
+        cameras: :class:`toolkit.cameras.Cameras` (the training views).
+        space: :class:`toolkit.space.SceneSpace` of the field (contracted).
+        n_rays, samples, quantile, pad, max_radius, seed, device: see above.
+
+    Returns:
+        (box float64 [2, 3] metres, report ``{"rays", "rays_opaque", "points_kept", "box"}``). Without any opaque
+        ray the scene box itself.
+    """
+    from ..cameras import generate_rays
+    from ..space import box_radius, contracted_edges
+
+    cams = cameras.to("cpu")
+    g = torch.Generator().manual_seed(seed)
+    n_pix = (cams.height * cams.width).long()
+    view = torch.multinomial(n_pix.double(), n_rays, replacement=True, generator=g)
+    pix = (torch.rand(n_rays, generator=g, dtype=torch.float64) * n_pix[view]).long()
+    width = cams.width[view].long()
+    sp = space.to("cpu")
+    rays = generate_rays(cams, view, pixels=torch.stack([pix % width, pix // width], -1), aabb=sp)
+    pts_all = []
+    for s in range(0, len(rays), 256):
+        r = rays[s:s + 256]
+        edges = contracted_edges(r.origins, r.directions, r.near, r.far, sp, samples, perturb=False)
+        mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
+        delta = (edges[:, 1:] - edges[:, :-1]).numpy()
+        pts = r.origins[:, None] + r.directions[:, None] * mids[..., None]
+        sigma = np.maximum(_density(density_fn, pts.reshape(-1, 3).numpy(), device).reshape(mids.shape), 0.0)
+        reached = np.cumsum(sigma * delta, axis=1) >= math.log(2.0)
+        ok = reached.any(1)
+        first = reached.argmax(1)
+        pts_all.append(pts[torch.from_numpy(np.nonzero(ok)[0]), torch.from_numpy(first[ok])])
+    pts = torch.cat(pts_all) if pts_all else torch.zeros(0, 3)
+    rep = {"rays": int(n_rays), "rays_opaque": int(len(pts))}
+    pts = pts[box_radius(pts, sp.aabb) <= max_radius].double().numpy()
+    rep["points_kept"] = int(len(pts))
+    if len(pts) < 16:
+        box = sp.aabb.double().numpy()
+    else:
+        lo, hi = np.quantile(pts, quantile, axis=0), np.quantile(pts, 1.0 - quantile, axis=0)
+        ext = np.maximum(hi - lo, 1e-6)
+        box = np.stack([lo - pad * ext, hi + pad * ext])
+    rep["box"] = box.tolist()
+    return box, rep
+
+
 def grid_spec(aabb: np.ndarray, resolution: int) -> tuple[float, tuple[int, int, int]]:
     """(voxel edge δ in metres, samples per axis) of the marching-cubes grid over ``aabb`` float [2, 3] with
     ``resolution`` cells along the longest edge (what :func:`extract_mesh` uses)."""

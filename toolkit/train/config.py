@@ -83,6 +83,12 @@ class TrainConfig:
     a learned environment lies beyond the far radius — rooms, galleries, outdoor and real object captures with their
     surroundings; ``object``: an isolated object on a known background colour, nothing modelled outside the box.
     ``auto``: ``object`` when the photos have real transparency (RGBA with alpha < 1), else ``unbounded``."""
+    background_start: Literal["auto", "border", "dark"] = "auto"
+    """Where a learned background starts: ``border`` — the median colour of the photos' outer pixels; ``dark`` —
+    black, so the field must explain what the photos show before the background may (the walls of a room become
+    surfaces instead of environment). ``auto``: dark for unbounded scenes, border otherwise."""
+    lr_background: float = 0.0
+    """Learning rate of the background (0: ``lr_grid``)."""
     scene_box: tuple | None = None
     """The scene box ``((xmin, ymin, zmin), (xmax, ymax, zmax))`` the run was trained with (filled by
     :func:`resolve_config`: the file's ``aabb`` or one fitted to sparse points, :mod:`toolkit.bounds`)."""

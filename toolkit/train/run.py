@@ -13,7 +13,7 @@ import json
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import torch
 
@@ -167,6 +167,8 @@ class FieldCallables(NamedTuple):
         aabb: float [2, 3] scene box, metres.
         sh: float [9, 3] the run's global SH light, or None.
         cameras: the training cameras (TSDF fusion, unseen-face removal), or None.
+        space: the field's :class:`toolkit.space.SceneSpace` (None: bounded by ``aabb``). With contraction the
+            region to mesh comes from the training rays (:func:`toolkit.mesh.surface_region`).
     """
 
     density_fn: Callable
@@ -174,6 +176,7 @@ class FieldCallables(NamedTuple):
     aabb: torch.Tensor
     sh: torch.Tensor | None
     cameras: Cameras | None
+    space: Any = None
 
 
 def field_callables(run: Run, chunk: int = 65536):
@@ -228,4 +231,4 @@ def load_field_callables(run_dir: str | Path, checkpoint: str | Path | None = No
     run = load_run(run_dir, checkpoint, with_weights=False)
     d, m = field_callables(run)
     return FieldCallables(d, m, run.train_scene.aabb.clone(), run.l_env.detach().cpu().clone(),
-                          run.train_scene.cameras)
+                          run.train_scene.cameras, run.field.space.to("cpu") if run.cfg.field.contraction else None)

@@ -74,8 +74,13 @@ def _background_for(scene: Scene, cfg: TrainConfig, images: torch.Tensor | None 
     mode = cfg.background
     if mode == "auto":
         mode = "constant" if cfg.scene_type == "object" and photos_have_transparency(scene) else "env"
+    start = cfg.background_start
+    if start == "auto":
+        start = "dark" if cfg.field.contraction else "border"
     if mode == "constant" or images is None:
         colour = tuple(float(c) for c in srgb_to_linear(np.asarray(scene.background, np.float64)))
+    elif start == "dark":
+        colour = (1e-4, 1e-4, 1e-4)
     else:
         colour = _border_colour(images, scene.srgb)
     return Background(mode, colour)
@@ -101,7 +106,8 @@ def init_state(cfg: TrainConfig, data: TrainData) -> TrainState:
     if grid_params:
         groups.append({"params": grid_params, "lr": cfg.lr_grid, "weight_decay": 0.0, "name": "grid"})
     if list(bg.parameters()):
-        groups.append({"params": list(bg.parameters()), "lr": cfg.lr_grid, "weight_decay": 0.0, "name": "background"})
+        groups.append({"params": list(bg.parameters()), "lr": cfg.lr_background or cfg.lr_grid, "weight_decay": 0.0,
+                       "name": "background"})
     if colour is not None:
         groups.append({"params": list(colour.parameters()), "lr": cfg.lr_colour, "weight_decay": 0.0, "name": "colour"})
     opt = torch.optim.AdamW(groups, betas=(0.9, 0.99), eps=1e-15)
