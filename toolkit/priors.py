@@ -471,7 +471,8 @@ class TrainingPriors:
     Attributes:
         labels: uint8 [V, H, W] class ids (255 unlabelled), or None.
         labels_source: ``provided`` (the scene's), ``predicted (<dir>)``, ``none`` or ``off``.
-        metal: bool [V, H, W] the scene's metal masks, or None.
+        metal: bool [V, H, W] metal masks (the scene's or predicted), or None.
+        metal_source: ``provided``, ``predicted (<dir>)`` or ``none``.
         weights: float32 [V, H, W] W maps of ``dars priors weights``, or None (not there, or not asked for).
         distortion: float [V] L_distortion of each loaded map (0 where ``weights.json`` lacks it), or None.
         weights_source: ``loaded (<dir>)`` or None.
@@ -491,10 +492,11 @@ class TrainingPriors:
     light_source: str | None = None
     colour: Any = None
     colour_source: str | None = None
+    metal_source: str = "none"
 
 
 def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *, labels: LabelSource | None = "auto",
-                weights: bool = True, colour: bool = True) -> TrainingPriors:
+                weights: bool = True, colour: bool = True, metal: str = "scene") -> TrainingPriors:
     """Read the priors of ``scene`` for training, file by file (nothing is computed here).
 
     Args:
@@ -504,6 +506,8 @@ def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *,
             off (``labels_source`` ``off``).
         weights: read ``weights/<key>.npy`` (used only when every frame has one).
         colour: read ``colour/colour.json``.
+        metal: where the metal mask comes from: ``scene`` (the scene's ``metal_path`` ground truth, when every frame
+            has one), ``segment`` (``segment/<key>_metal.png`` predictions, when every frame has one) or ``none``.
 
     Raises:
         DarsError: ``colour.json`` lacks a transform for a frame of the scene.
@@ -516,8 +520,18 @@ def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *,
         labs, src = labels_for(scene, labels, seg_dir)
         labs = None if labs is None else labs.to(torch.uint8)
         lab_src = {"scene": "provided", "segment": f"predicted ({seg_dir})"}.get(src, "none")
-    metal = torch.stack([scene.load_extra(i, "metal") for i in range(V)]) if scene.has_extra("metal") else None
-    out = TrainingPriors(labels=labs, labels_source=lab_src, metal=metal)
+    metal_mask, metal_src = None, "none"
+    if metal == "scene" and scene.has_extra("metal"):
+        metal_mask, metal_src = torch.stack([scene.load_extra(i, "metal") for i in range(V)]), "provided"
+    elif metal == "segment":
+        seg_dir = priors_path(scene, "segment", priors_root)
+        mfiles = [seg_dir / f"{f.key}_metal.png" for f in scene.frames]
+        if all(p.is_file() for p in mfiles):
+            ms = [np.asarray(read_map(p, f"predicted metal mask {p}")) for p in mfiles]
+            metal_mask = torch.from_numpy(np.stack([(m[..., 0] if m.ndim == 3 else m) > 0 for m in ms]))
+            metal_src = f"predicted ({seg_dir})"
+    out = TrainingPriors(labels=labs, labels_source=lab_src, metal=metal_mask)
+    out.metal_source = metal_src
     wdir = priors_path(scene, "weights", priors_root)
     wfiles = [wdir / f"{f.key}.npy" for f in scene.frames]
     if weights and wdir.is_dir() and all(p.is_file() for p in wfiles):

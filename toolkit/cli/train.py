@@ -17,8 +17,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--out", required=True, help="run directory")
     q.add_argument("--preset", default="fast", choices=["fast", "paper"])
     g = q.add_mutually_exclusive_group()
-    g.add_argument("--minutes", type=float, default=0.0, help="wall-clock training budget")
-    g.add_argument("--steps", type=int, default=0, help="training steps")
+    g.add_argument("--minutes", type=float, default=0.0,
+                   help="wall-clock budget: turned into a step count after timing the first steps on this machine "
+                        "(logged; --steps N with that count reproduces the run exactly)")
+    g.add_argument("--steps", type=int, default=0, help="training steps (every schedule is in steps)")
     q.add_argument("--resume", action="store_true", help="continue the run in --out")
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--split", default="train")
@@ -30,10 +32,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
     q.add_argument("--albedo-supervision", action="store_true",
                    help="use the scene's ground-truth albedo maps in L_mat (eq. 20); makes albedo MAE circular")
-    q.add_argument("--scene-type", default="auto", choices=["auto", "room", "object"],
-                   help="room: photos taken inside an enclosed room (walls start as an opaque layer on the box faces "
-                        "after stage a); object: transparent start everywhere; auto: room when most cameras are "
-                        "inside the scene box and the photos are not RGBA")
+    q.add_argument("--scene-type", default="auto", choices=["auto", "unbounded", "room", "object"],
+                   help="unbounded (room is the same): space beyond the scene box is contracted and modelled too — "
+                        "rooms, galleries, captures with surroundings; object: an isolated object on a known "
+                        "background colour (RGBA with transparency); auto: object when the photos have real "
+                        "transparency, else unbounded")
+    q.add_argument("--labels", default="predicted", choices=["predicted", "ground-truth", "none"],
+                   help="semantic labels and metal masks: predicted by the segmentation prior (default; none when "
+                        "`dars priors segment` was not run), the scene's ground-truth maps (experiments only: "
+                        "recorded in the run and its reports), or none")
     q.add_argument("--snapshots", default="", help="comma-separated minutes at which to save the field, e.g. 2,5,10")
     q.add_argument("--batch-rays", type=int, default=0, help="override rays per step")
     q.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
@@ -97,6 +104,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides["baseline"] = args.baseline
     if args.albedo_supervision:
         overrides["albedo_supervision"] = True
+    if args.labels != "predicted":
+        overrides["labels"] = args.labels
     if args.batch_rays:
         overrides["batch_rays"] = args.batch_rays
     if args.snapshots:

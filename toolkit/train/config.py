@@ -57,6 +57,9 @@ class TrainConfig:
     occupancy_resolution: int = 64
     occupancy_every: int = 16
     occupancy_warmup: int = 64
+    occupancy_explore: float = 0.0
+    """Fraction of the occupancy grid's cells kept sampled at random at each update (density can grow back where
+    the grid pruned it too early)."""
     auto_resolution: bool = True
     """Set the hash grid's finest resolution from the data (:func:`resolve_config`)."""
     pretrain_fraction: float = 0.3
@@ -71,6 +74,10 @@ class TrainConfig:
     semantics: bool = True
     """Semantic guidance: semantic loss, labels in L_mat and in W; off = the "w/o semantics" ablation."""
     fixed_light: bool = False
+    labels: Literal["predicted", "ground-truth", "none"] = "predicted"
+    """Where semantic labels and metal masks come from: ``predicted`` — the segmentation prior
+    (``<priors>/segment/``; none when it was not run); ``ground-truth`` — the scene's own ``semantic_path`` and
+    ``metal_path`` maps (experiments only: every report says so); ``none`` — no labels."""
     albedo_supervision: bool = False
     """Use ground-truth albedo maps in L_mat (eq. 20 a_gt) when the scene has them. Off by default: a real
     capture has none, and evaluating albedo MAE against the same maps would be circular."""
@@ -110,6 +117,7 @@ class TrainConfig:
         check_choice(self.colour_correction, ("auto", "on", "off"), "colour_correction")
         check_choice(self.background, ("auto", "constant", "learned", "env"), "background")
         check_choice(self.scene_type, ("auto", "unbounded", "room", "object"), "scene_type")
+        check_choice(self.labels, ("predicted", "ground-truth", "none"), "labels")
         if self.batch_rays < 16:
             raise ConfigError(f"batch_rays={self.batch_rays} must be >= 16")
         if self.steps < 0 or self.minutes < 0:

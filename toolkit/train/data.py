@@ -10,7 +10,7 @@ from typing import Any
 import torch
 
 from ..io import srgb_to_linear
-from ..priors import read_priors
+from ..priors import priors_path, read_priors
 from ..scene import Scene
 from .config import TrainConfig
 
@@ -65,10 +65,18 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
 
     images = scene.load_images()
     V, _, H, W = images.shape
-    pri = read_priors(scene, priors_root, labels="auto" if cfg.semantics else None, weights=cfg.semantics,
-                      colour=cfg.colour_correction != "off")
+    source = {"ground-truth": "scene", "none": None}.get(cfg.labels, "segment")
+    if source == "segment":  # predictions when the segmentation prior was run, else no labels
+        seg = priors_path(scene, "segment", priors_root)
+        if not all((seg / f"{f.key}.png").is_file() for f in scene.frames):
+            source = "none"
+    pri = read_priors(scene, priors_root, labels=source if cfg.semantics else None, weights=cfg.semantics,
+                      colour=cfg.colour_correction != "off",
+                      metal={"ground-truth": "scene", "predicted": "segment"}.get(cfg.labels, "none"))
     labels, metal = pri.labels, pri.metal
-    priors: dict = {"labels": pri.labels_source, "metal": "provided" if metal is not None else "none"}
+    priors: dict = {"labels": pri.labels_source, "metal": pri.metal_source}
+    if cfg.labels == "ground-truth":
+        priors["ground_truth_inputs"] = "labels and metal masks (--labels ground-truth)"
     if pri.weights is not None:
         wm, dist = pri.weights, pri.distortion
         priors["weights"] = pri.weights_source
