@@ -148,7 +148,9 @@ def contracted_edges(origins: np.ndarray, directions: np.ndarray, near: np.ndarr
 
     The contracted path length of each ray is tabulated at ``n_candidates`` + 1 depths spaced geometrically from
     ``near`` to ``far``; the ``n`` strata are its equal parts (linear interpolation in the table). Rays with
-    ``far <= near`` get zero-length strata.
+    ``far <= near`` get zero-length strata. Same float32 operations as torch, but not bit-exact: torch's
+    vectorised float32 ``pow`` (SLEEF, within 1 ulp) and ``linspace`` round a few table depths differently, so
+    edges agree to ~1e-6 relative (most of them exactly).
 
     Args:
         origins, directions: float32 [R, 3] rays (unit directions).
@@ -184,7 +186,7 @@ def contracted_edges(origins: np.ndarray, directions: np.ndarray, near: np.ndarr
 
 
 def stratified_edges(origins: np.ndarray, directions: np.ndarray, near: np.ndarray, far: np.ndarray,
-                     space: "SceneSpace", n: int) -> np.ndarray:
+                     space: SceneSpace, n: int) -> np.ndarray:
     """float32 [R, n + 1] deterministic stratum edges (mirror of :func:`toolkit.sampling.stratified_edges` with
     ``perturb=False``): equal in contracted arc length for a contracted space, else equal in metres."""
     if space.contraction:
@@ -544,7 +546,7 @@ def _sample_fine(edges: np.ndarray, pdf: np.ndarray, counts: np.ndarray, return_
     p = pdf * valid
     s = p.sum(-1, keepdims=True)
     p = np.where(s > 1e-12, p / np.maximum(s, f32(1e-12)), valid / np.maximum(valid.sum(-1, keepdims=True), f32(1.0)))
-    cdf = np.concatenate([np.zeros((R, 1), f32), np.cumsum(p, -1, dtype=f32)], -1)
+    cdf = np.concatenate([np.zeros((R, 1), f32), np.cumsum(p.astype(np.float64), -1).astype(f32)], -1)  # as torch
     cdf[:, -1] = 1.0
     ray_idx = np.repeat(np.arange(R), counts)
     j = np.arange(total) - _ray_starts(ray_idx, R)[ray_idx]
