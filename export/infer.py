@@ -216,12 +216,17 @@ def load_model(path: str | os.PathLike, precision: str = "fp32", threads: int | 
     if not (path / FIELD_FILES[precision]).is_file():
         raise InferError(f"{path / FIELD_FILES[precision]} not found: export it with "
                          f"`dars export-onnx RUN --out {path} --precision fp32,{precision}`")
+    current = "metadata.json"  # the file being read, named when it is damaged
     try:
         metadata = json.loads((path / "metadata.json").read_text())
+        if not isinstance(metadata, dict):
+            raise ValueError(f"it holds a {type(metadata).__name__}, not an object")
+        current = "occupancy.npz"
         occ = np.load(path / "occupancy.npz")
         r = int(occ["resolution"])
         occupancy = {"resolution": r, "aabb": occ["aabb"],
                      "mask": np.unpackbits(occ["mask_bits"], count=r ** 3).astype(bool)}
+        current = "background.npz"
         b = np.load(path / "background.npz")
         mode = str(b["mode"])
         background = {"mode": mode}
@@ -229,9 +234,9 @@ def load_model(path: str | os.PathLike, precision: str = "fp32", threads: int | 
             background["env_map"] = np.asarray(b["env_map"], np.float32)
         else:
             background["colour"] = np.asarray(b["colour"], np.float32).reshape(3)
-    except (OSError, KeyError, ValueError) as e:
-        raise InferError(f"{path}: could not read the export ({type(e).__name__}: {e}); "
-                         "re-run `dars export-onnx RUN --out DIR`") from e
+    except Exception as e:  # noqa: BLE001 - json, zipfile, zlib and numpy raise many types for a damaged file
+        raise InferError(f"{path / current} is truncated or corrupt ({type(e).__name__}: {str(e)[:160]}); "
+                         f"re-run `dars export-onnx RUN --out {path}`") from e
     session = make_session(path / FIELD_FILES[precision], threads)
     return FieldModel(path, metadata, session, precision, occupancy, background)
 
@@ -249,7 +254,12 @@ def camera_from_transforms(path: str | os.PathLike, index: int) -> PinholeCamera
     path = Path(path)
     if not path.is_file():
         raise InferError(f"transforms file not found: {path}")
-    meta = json.loads(path.read_text())
+    try:
+        meta = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as e:
+        raise InferError(f"{path} is not a valid transforms JSON ({e})") from e
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames", []), list):
+        raise InferError(f"{path}: expected a JSON object with a 'frames' list")
     frames = meta.get("frames", [])
     if not 0 <= index < len(frames):
         raise InferError(f"{path}: frame index {index} out of range (the file has {len(frames)} frames)")
