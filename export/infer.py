@@ -222,12 +222,12 @@ def load_model(path: str | os.PathLike, precision: str = "fp32", threads: int | 
         if not isinstance(metadata, dict):
             raise ValueError(f"it holds a {type(metadata).__name__}, not an object")
         current = "occupancy.npz"
-        occ = np.load(path / "occupancy.npz")
+        occ = _load_npz(path / "occupancy.npz")
         r = int(occ["resolution"])
         occupancy = {"resolution": r, "aabb": occ["aabb"],
                      "mask": np.unpackbits(occ["mask_bits"], count=r ** 3).astype(bool)}
         current = "background.npz"
-        b = np.load(path / "background.npz")
+        b = _load_npz(path / "background.npz")
         mode = str(b["mode"])
         background = {"mode": mode}
         if mode == "env":
@@ -239,6 +239,16 @@ def load_model(path: str | os.PathLike, precision: str = "fp32", threads: int | 
                          f"re-run `dars export-onnx RUN --out {path}`") from e
     session = make_session(path / FIELD_FILES[precision], threads)
     return FieldModel(path, metadata, session, precision, occupancy, background)
+
+
+def _load_npz(path: Path):
+    """``np.load`` of an ``.npz`` that says "not an .npz archive" for a truncated or foreign file (numpy would try
+    to read it as pickled data)."""
+    import zipfile
+
+    if not zipfile.is_zipfile(path):
+        raise ValueError("not an .npz archive: truncated, or another kind of file")
+    return np.load(path, allow_pickle=False)
 
 
 # ====================================================================== cameras and rays

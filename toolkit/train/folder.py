@@ -69,7 +69,7 @@ def find_run(run_dir: str | os.PathLike, checkpoint: str | os.PathLike | None = 
     run_dir = Path(run_dir)
     ck_path = Path(checkpoint) if checkpoint else run_dir / "checkpoint.pt"
     if not run_dir.is_dir():
-        raise DarsError(f"RUN folder not found: {run_dir} (give the --out folder of `dars train SCENE --out RUN`)")
+        raise DarsError(f"RUN directory not found: {run_dir} (give the --out directory of `dars train SCENE --out RUN`)")
     if not (run_dir / "config.json").is_file() and not ck_path.is_file():
         raise DarsError(f"{run_dir} is not a training run (a run holds config.json and checkpoint.pt): create one "
                         "with `dars train SCENE --out RUN`")

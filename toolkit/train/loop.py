@@ -206,11 +206,13 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                                     f"{last.get('stage', '')} {eta}".strip())
     except TrainingDiverged as e:
         bar.close()
+        folder.finish()
         log(f"[dars] {e}")
         raise
     except KeyboardInterrupt:
         bar.close()
         save_checkpoint(state, ck_path)
+        folder.finish()
         log(f"[dars] interrupted at step {state.step}; checkpoint saved, continue with --resume")
         raise
     bar.close()
