@@ -368,27 +368,42 @@ def load_model(path: str | os.PathLike, precision: str = "fp32", threads: int | 
     if not (path / FIELD_FILES[precision]).is_file():
         raise InferError(f"{path / FIELD_FILES[precision]} not found: export it with "
                          f"`dars export-onnx RUN --out {path} --precision fp32,{precision}`")
+    current = "metadata.json"  # the file being read, named when it is damaged
     try:
         metadata = json.loads((path / "metadata.json").read_text())
-        occ = np.load(path / "occupancy.npz")
+        if not isinstance(metadata, dict):
+            raise ValueError(f"it holds a {type(metadata).__name__}, not an object")
+        current = "occupancy.npz"
+        occ = _load_npz(path / "occupancy.npz")
         r = int(occ["resolution"])
         occupancy = {"resolution": r, "aabb": occ["aabb"],
                      "mask": np.unpackbits(occ["mask_bits"], count=r ** 3).astype(bool),
                      "contraction": bool(occ["contraction"]) if "contraction" in occ.files else False}
         if "far_radius" in occ.files:
             occupancy["far_radius"] = float(occ["far_radius"])
-        b = np.load(path / "background.npz")
+        current = "background.npz"
+        b = _load_npz(path / "background.npz")
         mode = str(b["mode"])
         background = {"mode": mode}
         if mode == "env":
             background["env_map"] = np.asarray(b["env_map"], np.float32)
         else:
             background["colour"] = np.asarray(b["colour"], np.float32).reshape(3)
-    except (OSError, KeyError, ValueError) as e:
-        raise InferError(f"{path}: could not read the export ({type(e).__name__}: {e}); "
-                         "re-run `dars export-onnx RUN --out DIR`") from e
+    except Exception as e:  # noqa: BLE001 - json, zipfile, zlib and numpy raise many types for a damaged file
+        raise InferError(f"{path / current} is truncated or corrupt ({type(e).__name__}: {str(e)[:160]}); "
+                         f"re-run `dars export-onnx RUN --out {path}`") from e
     session = make_session(path / FIELD_FILES[precision], threads)
     return FieldModel(path, metadata, session, precision, occupancy, background)
+
+
+def _load_npz(path: Path):
+    """``np.load`` of an ``.npz`` that says "not an .npz archive" for a truncated or foreign file (numpy would try
+    to read it as pickled data)."""
+    import zipfile
+
+    if not zipfile.is_zipfile(path):
+        raise ValueError("not an .npz archive: truncated, or another kind of file")
+    return np.load(path, allow_pickle=False)
 
 
 # ====================================================================== cameras and rays
@@ -404,7 +419,12 @@ def camera_from_transforms(path: str | os.PathLike, index: int) -> PinholeCamera
     path = Path(path)
     if not path.is_file():
         raise InferError(f"transforms file not found: {path}")
-    meta = json.loads(path.read_text())
+    try:
+        meta = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as e:
+        raise InferError(f"{path} is not a valid transforms JSON ({e})") from e
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames", []), list):
+        raise InferError(f"{path}: expected a JSON object with a 'frames' list")
     frames = meta.get("frames", [])
     if not 0 <= index < len(frames):
         raise InferError(f"{path}: frame index {index} out of range (the file has {len(frames)} frames)")

@@ -87,5 +87,5 @@ def test_cli_ablate_bad_input(tmp_path, capsys):
 
     assert main(["ablate", str(tmp_path / "nope"), "--out", str(tmp_path / "o"), "--steps", "2", "--quiet"]) == 2
     assert "error" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        main(["ablate", str(tmp_path), "--out", str(tmp_path / "o")])  # a budget is required
+    assert main(["ablate", str(tmp_path), "--out", str(tmp_path / "o")]) == 2  # a budget is required
+    assert "--steps" in capsys.readouterr().err and not (tmp_path / "o").exists()

@@ -13,7 +13,6 @@ variant directory trained with another budget, preset or switches is refused rat
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from dataclasses import dataclass, field, replace
@@ -21,11 +20,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence
 
 from ._checks import ConfigError, DarsError
+from .outputs import OutputDir
 
 if TYPE_CHECKING:
     from .evaluate import EvalConfig, EvalResult
 
-__all__ = ["VARIANTS", "VARIANT_LABELS", "VariantResult", "AblationResult", "run_ablation"]
+ABLATION_FILES = ("ablation.json", "ablation.md", "ablation_brightness.png", "ablation_weights.png")
+"""What :func:`run_ablation` writes beside the variants' run folders."""
+
+__all__ = ["ABLATION_FILES", "VARIANTS", "VARIANT_LABELS", "VariantResult", "AblationResult", "run_ablation"]
 
 VARIANTS: dict[str, dict] = {
     "full": {},
@@ -105,10 +108,11 @@ class AblationResult:
 
 
 def _saved_config(run_dir: Path) -> dict | None:
-    p = run_dir / "config.json"
-    if not (run_dir / "checkpoint.pt").is_file() or not p.is_file():
+    from .train.folder import read_run_meta
+
+    if not (run_dir / "checkpoint.pt").is_file() or not (run_dir / "config.json").is_file():
         return None
-    return json.loads(p.read_text())["config"]
+    return read_run_meta(run_dir)["config"]
 
 
 def run_ablation(
@@ -130,7 +134,8 @@ def run_ablation(
 
     Args:
         scene: the scene (as ``dars train`` takes it).
-        out_dir: output directory; variant ``v`` trains into ``out_dir/v``.
+        out_dir: output directory (or a checked :class:`toolkit.outputs.OutputDir`); variant ``v`` trains into
+            ``out_dir/v``. A folder that is not new, empty or dars's is refused (:mod:`toolkit.outputs`).
         preset: training preset (``fast`` or ``paper``).
         minutes: wall-clock training budget per variant (exclusive with ``steps``).
         steps: training steps per variant.
@@ -177,8 +182,10 @@ def run_ablation(
     load_scene(scene, "train")  # fail before any training when the scene or the evaluation split is unusable
     if len(load_scene(scene, split)) == 0:
         raise DarsError(f"run_ablation: split '{split}' of {scene} has no views to evaluate")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    folder = out_dir if isinstance(out_dir, OutputDir) else OutputDir(out_dir, "ablate")
+    folder.check(list(ABLATION_FILES) + [f"{n}/" for n in names])
+    out = folder.path
+    folder.begin()
     result = AblationResult(scene=str(scene), out_dir=out, preset=preset, steps=int(steps), minutes=float(minutes),
                             seed=int(seed), split=split, overrides=overrides)
     budget = f"{steps} steps" if steps else f"{minutes:g} min"
@@ -219,6 +226,7 @@ def run_ablation(
             f"FLIP {_f(m['flip'])}, view consistency {_f(m['view_consistency'])}")
         del run
     write_ablation_report(result, out)
+    folder.finish()
     log(f"[ablate] wrote {out / 'ablation.md'} and {out / 'ablation.json'}")
     return result
 
