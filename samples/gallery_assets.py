@@ -262,15 +262,15 @@ def floor_texture(kind: str, seed: int, tone: tuple[float, float, float], size: 
     if kind == "planks":
         planks = int(rng.integers(8, 14))
         rows = (yy * planks) // size
-        seams = rng.uniform(0, size, (planks, 2))
+        seams = np.sort(rng.uniform(0, size, (planks, 2)), axis=1)  # two boards per row; one of them wraps around x
         streak = periodic_noise(rng, size, 1.5)
         streak = 0.7 * streak.mean(1, keepdims=True) / (np.abs(streak.mean(1)).max() + 1e-6) + 0.3 * streak  # grain along x
         img = np.zeros((size, size, 3), np.float32)
         for p in range(planks):
             m = rows == p
             xs = xx[m]
-            part = (xs >= seams[p, 0]).astype(int) + (xs >= seams[p, 1]).astype(int)
-            tones = base[None] * rng.uniform(0.8, 1.15, (3, 1)) + rng.uniform(-0.02, 0.02, (3, 3))
+            part = ((xs >= seams[p, 0]) & (xs < seams[p, 1])).astype(int)
+            tones = base[None] * rng.uniform(0.8, 1.15, (2, 1)) + rng.uniform(-0.02, 0.02, (2, 3))
             img[m] = tones[part]
         img *= (1.0 + 0.2 * streak)[..., None]
         edge = ((yy * planks) % size) < max(2, size // 256)

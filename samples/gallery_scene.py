@@ -51,8 +51,18 @@ from procedural import (  # noqa: E402
 )
 
 LIBLLVM19 = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
-ENVMAPS = Path(os.environ.get("DARS_ENVMAPS", "/work/shared/data/envmaps"))
-"""Where the HDR probes are read from (never copied into the repo)."""
+def _envmaps_dir() -> Path:
+    if os.environ.get("DARS_ENVMAPS"):
+        return Path(os.environ["DARS_ENVMAPS"])
+    if os.environ.get("DARS_SHARED_DATA"):
+        return Path(os.environ["DARS_SHARED_DATA"]) / "envmaps"
+    beside = _REPO.parent / "shared" / "data" / "envmaps"
+    return beside if beside.is_dir() else Path("/work/shared/data/envmaps")
+
+
+ENVMAPS = _envmaps_dir()
+"""Where the HDR probes are read from (never copied into the repo): ``$DARS_ENVMAPS``, ``$DARS_SHARED_DATA/envmaps``,
+``../shared/data/envmaps`` beside the clone, else ``/work/shared/data/envmaps``."""
 DEFAULT_ENV = str(ENVMAPS / "probulator_pisa_256x128.hdr")
 
 
