@@ -531,7 +531,8 @@ def environment_as_used(mi, dr, built: _Built, H: int, W: int) -> np.ndarray:
 GT_RULES = ("depth/semantic/metal: one ray through the pixel centre; normal/albedo/roughness/metallic: mean of {n}x{n} stratified rays "
             "that hit; glass (case panes, painting covers): maps describe the first opaque surface seen through the clear pane; through "
             "a display case the label is 6 (other) on an exhibit, else 2 (display); behind a painting's cover the canvas's 0; "
-            "ceiling and skylight wells are labelled 4 (wall); exhibits, benches, signs, plaques and lamp panels 6 (other); "
+            "ceiling, skylight wells and diffusers and ceiling lamp panels are labelled 4 (wall); exhibits, benches, signs and "
+            "plaques 6 (other); "
             "metal = metallic >= 0.5 and label frame/base/other; normals world-space facing the camera, encoded (n+1)/2, 0 where "
             "nothing was hit; albedo is the linear principled base_color; 255 / depth 0 / maps 0 where a ray escapes (sky)")
 

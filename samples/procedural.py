@@ -13,7 +13,7 @@ named by the side they stand on: ``north`` (y = y1, faces −y), ``south`` (y = 
 from inside the room (north: +x, east: −y, south: −x, west: +y).
 
 What a seed varies (see :func:`random_gallery`): room size, proportions and offset; walls (off-white, grey, dark or
-saturated paint, an accent wall), floor (planks, stone slabs, concrete, carpet), ceiling (closed with 0–3 skylights
+saturated paint, an accent wall), floor (planks, stone slabs, concrete, carpet), ceiling (closed with 0–3 frosted skylights
 with light wells, or open top); 1–5 paintings (4 canvas styles, roughness U(0.5, 0.95)) on random walls with gilt
 (metallic 1), wood or glass-covered frames, wall plaques; 0–3 pedestals (stone, wood, painted) with a metal or
 ceramic exhibit (twisted sculpture, vase, bowl, sphere, box), sometimes in a glass case; a bench and a sign stand;

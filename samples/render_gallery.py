@@ -7,11 +7,19 @@ Two kinds of scene share one renderer:
   twisted metal sculpture in a glass case, lit only by an HDR environment. ``make sample`` re-renders it with the
   ``sample`` profile (80 + 20 views, 400 spp, the hand-set ``aabb``); its ``"sh"`` is the environment's SH.
 * ``--seed N`` (:func:`procedural.random_gallery`): a closed gallery room drawn from the seed — size, walls, floor,
-  ceiling with skylights or an open top, 1–5 framed paintings (gilt, wood, glass-covered), pedestals with metal and
-  ceramic exhibits, display cases, benches and signs, an HDR probe entering through the openings plus lamps, camera
+  a ceiling with 0–3 skylights or an open top, 1–5 framed paintings (gilt, wood, glass-covered), pedestals with metal
+  and ceramic exhibits, display cases, benches and signs, daylight from an HDR probe plus 0–4 lamps, camera
   walks/arcs/close-ups inside the room (see ``samples/procedural.py``). Profiles: ``validation`` (128 px, 100 + 20
-  views, passes of 64 spp until two renders would agree at ≥ 38 dB) and ``prior`` (160 px, 10 + 2 views, 2 x 24
-  spp) for network training. ``samples/galleries.py`` caches them by seed.
+  views, passes of 64 spp until two renders would agree at ≥ 38 dB, at most 1024 spp) and ``prior`` (160 px,
+  10 + 2 views, 2 x 24 spp) for network training. ``samples/galleries.py`` caches them by seed.
+
+Daylight: through an open top the probe is seen and lights the room directly (open-top rooms draw the two probes
+whose light is spread, :data:`procedural.SMOOTH_PROBES`). Skylights are frosted, as museum skylights are (direct
+sun is kept off the art): each is a Lambertian diffuser at the top of its light well whose radiance is the probe's
+upward irradiance / π (:func:`daylight_radiance`, recorded as ``render.skylight_radiance``). Clear skylights were
+tried and dropped: a path tracer finds the sky through a small opening so rarely that 512 spp left the views at
+15–20 dB (two-render PSNR), where diffusers and lamps give 32–36 dB at 256 spp. Every emitter is picked for
+next-event estimation in proportion to its flux (``sampling_weight``).
 
 Conventions (SPEC): cameras are OpenGL camera-to-world (x right, y up, looking −z); Mitsuba's sensor looks +z with x
 to the left, so ``to_world = c2w @ diag(−1, 1, −1, 1)`` (:func:`c2w_to_mitsuba`). Pinhole, square pixels, principal
@@ -32,9 +40,10 @@ Ground truth (per view, one file per map, keys as in SPEC / nerfstudio):
 * ``normal`` (world, facing the camera, encoded (n+1)/2, 0 where nothing was hit), ``albedo`` (linear principled
   ``base_color``), ``roughness``, ``metallic``: anti-aliased, the mean of ``gt_subsamples²`` stratified rays per
   pixel over the rays that hit geometry.
-* Classes: the ceiling, skylight wells and walls are ``wall`` (4) — there is no ceiling class and, like a wall, the
-  ceiling is room structure a room prior should treat as such; exhibits, benches, sign stands, wall plaques and the
-  ceiling lamp panels are ``other`` (6); pedestals ``base`` (3); a painting's glass cover is part of the painting.
+* Classes: the ceiling, skylight wells and diffusers, ceiling lamp panels and walls are ``wall`` (4) — there is no
+  ceiling class and, like a wall, the ceiling with what is set into it is room structure that a room prior should
+  treat as such; exhibits, benches, sign stands and wall plaques are ``other`` (6); pedestals ``base`` (3); a
+  painting's glass cover is part of the painting (0).
 * Glass rule: panes are clear (≈ 92 % transmission), so the image shows what lies behind them. Depth, normal and
   material maps describe the first opaque surface behind the glass (what the pixel shows, so photometric and
   geometric supervision agree). Behind a painting's cover the label is the canvas's (0). Through a display case the
@@ -50,7 +59,9 @@ spot lamps added analytically (a delta lamp contributes ``E·Y(ω)`` with ``E`` 
 query gives at the point, 0 when occluded; a cube map cannot see them). ``light.hdr`` (``"envmap"``) is that
 panorama as a SPEC lat-long map with the delta lamps splatted into their pixels; ``"sh_env"`` is the probe's own SH
 at the exposure used (the :func:`environment_as_used` query projected, as the sample's ``"sh"``), and
-``env.hdr`` (``"probe_envmap"``) that probe. For the sample preset ``"sh"`` keeps its old meaning (the environment's
+``env.hdr`` (``"probe_envmap"``) that probe. The cube-map projection reproduces a probe's SH to 0.2 % of its DC term
+when nothing occludes it (16 px faces; tested); in the sample's open corner the point SH differs from the probe's by
+≤ 0.10 of the DC term, in the z and y bands (the floor replaces the lower hemisphere, the wall a slice of +y). For the sample preset ``"sh"`` keeps its old meaning (the environment's
 SH — the corner is open and lit by nothing else) and the cube-map SH is stored as ``"sh_point"``.
 
 Exposure: the sample scales the environment so the preview's mean sRGB is 0.42. A procedural gallery renders a
@@ -645,13 +656,15 @@ def render_gallery(cfg: GalleryConfig, out_dir: str | Path, opts: RenderOptions 
         "env": env0.source, "env_rotate_deg": cfg.lighting.rotate_deg, "env_tint": list(cfg.lighting.tint), "env_reaches_room": env_reaches,
         "exposure": expo["env_scale"] if sample else expo, "lamps": lamps_used, "mean_srgb": round(mean_srgb, 4),
         "fov_x_deg": cfg.camera.fov_x_deg, "image_format": cfg.image_format, "gt_rules": GT_RULES.format(n=opts.gt_subsamples),
+        "skylight_radiance": daylight_radiance(env).tolist() if cfg.room.openings else None,
         "sh_point": point.tolist(), "sh_probe": {"cube_face_px": opts.probe_face, "spp": opts.probe_spp, "delta_lamps": probe["delta_lamps"]},
         "sh_definition": ("environment SH: fit_sh_probe of the loaded emitter queried on a 2x dense SPEC lat-long grid (the sample is "
                           "an open corner lit only by it); sh_point: cube-map SH of the incident radiance at render.sh_point") if sample else
                          ("SPEC SH of the incident radiance at render.sh_point (room centre, eye height): cube map of the rendered scene "
                           "projected with exact pixel solid angles, plus point/spot lamps analytically; envmap light.hdr is that "
                           "panorama (lamps splatted). sh_env: the HDR probe's own SH at the exposure used (env.hdr); it lights the "
-                          "room only through the openings / open top"),
+                          "room through the open top (seen directly) or through frosted skylights (diffusers of radiance "
+                          "E_up / pi, E_up its irradiance on an upward-facing surface: render.skylight_radiance)"),
         "seconds": {k: round(v, 1) for k, v in seconds.items()},
     }
     if sample:
