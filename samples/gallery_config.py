@@ -24,7 +24,7 @@ SMOOTH_PROBES = ("probulator_pisa_256x128.hdr", "probulator_wells_256x128.hdr")
 """Probes whose light is spread (half the energy in 12 % / 5 % of the sphere); grace (0.01 %) and ennis (1.4 %) have
 small intense lights that leave an open-top room's path-traced images ~10 dB noisier at equal samples, so open-top
 rooms draw from these two. Skylit rooms use all four (through diffusers only the upward irradiance matters)."""
-GENERATOR_VERSION = "gallery-gen-1"
+GENERATOR_VERSION = "gallery-gen-2"
 """Bumped whenever a change to the generator or the renderer changes the output for the same config (the gallery
 cache re-renders then)."""
 
@@ -68,7 +68,9 @@ class Room:
     openings: tuple[tuple[float, float, float, float], ...] = ()
     """Skylights: ceiling holes (x0, x1, y0, y1)."""
     well_depth: float = 0.0
-    """Height of the light wells (shaft walls, labelled wall) above each opening."""
+    """Height of light wells (shaft walls, labelled wall) between the ceiling and the diffusers. Drawn rooms keep 0
+    (laylights flush with the ceiling): a diffuser at the top of a well is seen through the well's mouth only, and
+    that visibility cost 6 dB of noise at 256 spp (31.5 vs 37.5 dB two-render PSNR on a test view)."""
 
 
 @dataclass(frozen=True)

@@ -244,24 +244,18 @@ def _mi_transform(mi, ops) -> Any:
     return t
 
 
-def _luminance(rgb) -> float:
-    return float(np.dot(np.asarray(rgb, np.float64), [0.2126, 0.7152, 0.0722]))
-
-
 def _lamp_emitters(mi, cfg: GalleryConfig, scale: float) -> dict[str, dict]:
     """Mitsuba ``spot`` / ``point`` emitters of the config's lamps (intensity ``4·power·scale·colour`` W/sr, so the
-    irradiance 2 m away on the axis is ``power·scale``), each with a sampling weight equal to its flux."""
+    irradiance 2 m away on the axis is ``power·scale``)."""
     out = {}
     for k, lamp in enumerate(cfg.lighting.lamps):
         inten = {"type": "rgb", "value": [float(4.0 * lamp.power * scale * c) for c in lamp.color]}
-        i_lum = 4.0 * lamp.power * scale * _luminance(lamp.color)
         if lamp.kind == "point":
-            out[f"lamp_{k}"] = {"type": "point", "position": list(lamp.position), "intensity": inten, "sampling_weight": 4 * math.pi * i_lum}
+            out[f"lamp_{k}"] = {"type": "point", "position": list(lamp.position), "intensity": inten}
         elif lamp.kind == "spot":
             up = [0.0, 0.0, 1.0] if abs(np.subtract(lamp.target, lamp.position)[2]) < 0.99 * np.linalg.norm(np.subtract(lamp.target, lamp.position)) else [0.0, 1.0, 0.0]
             out[f"lamp_{k}"] = {"type": "spot", "to_world": mi.ScalarTransform4f().look_at(origin=list(lamp.position), target=list(lamp.target), up=up),
-                                "intensity": inten, "beam_width": float(lamp.beam_deg), "cutoff_angle": float(lamp.cutoff_deg),
-                                "sampling_weight": 2 * math.pi * (1 - math.cos(math.radians(lamp.cutoff_deg))) * i_lum}
+                                "intensity": inten, "beam_width": float(lamp.beam_deg), "cutoff_angle": float(lamp.cutoff_deg)}
     return out
 
 
@@ -308,13 +302,9 @@ def build_scene(mi, cfg: GalleryConfig, env: Environment | None, workdir: Path, 
     parts = scene_parts(cfg)
     scene_dict: dict[str, Any] = {"type": "scene"}
     sky = daylight_radiance(env) if env is not None else None
-    weighted = cfg.preset != "sample"  # emitters are picked in proportion to their flux (the sample: one emitter)
     if env is not None and (env_emitter_visible(cfg) if env_emitter is None else env_emitter):
         scene_dict["env"] = {"type": "envmap", "bitmap": mi.Bitmap(_mitsuba_env_bitmap(env.latlong)),
                              "to_world": T().rotate([0, 0, 1], env.rotate_z_deg).rotate([1, 0, 0], 90)}
-        if weighted:  # the flux through the open top
-            area = (cfg.room.x[1] - cfg.room.x[0]) * (cfg.room.y[1] - cfg.room.y[0])
-            scene_dict["env"]["sampling_weight"] = math.pi * _luminance(sky) * area
     bases = []
     for part in parts:
         mat = part.material
@@ -339,8 +329,7 @@ def build_scene(mi, cfg: GalleryConfig, env: Environment | None, workdir: Path, 
             d = {"type": "ply", "filename": str(ply), "to_world": d["to_world"], "bsdf": bsdf}
         if (part.emission is not None and lamp_scale > 0) or (part.skylight and sky is not None):
             radiance = [float(c * lamp_scale) for c in part.emission] if part.emission is not None else [float(c) for c in sky]
-            area = 4.0 * abs(np.prod([op[1:4] for op in part.xform if op[0] == "s"][0][:2]))
-            d["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": radiance}, "sampling_weight": math.pi * _luminance(radiance) * area}
+            d["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": radiance}}
         scene_dict[part.name] = d
         bases.append(base)
     if lamp_scale > 0:

@@ -13,8 +13,8 @@ named by the side they stand on: ``north`` (y = y1, faces −y), ``south`` (y = 
 from inside the room (north: +x, east: −y, south: −x, west: +y).
 
 What a seed varies (see :func:`random_gallery`): room size, proportions and offset; walls (off-white, grey, dark or
-saturated paint, an accent wall), floor (planks, stone slabs, concrete, carpet), ceiling (closed with 0–3 frosted skylights
-with light wells, or open top); 1–5 paintings (4 canvas styles, roughness U(0.5, 0.95)) on random walls with gilt
+saturated paint, an accent wall), floor (planks, stone slabs, concrete, carpet), ceiling (closed with 0–3 frosted
+skylights, or open top); 1–5 paintings (4 canvas styles, roughness U(0.5, 0.95)) on random walls with gilt
 (metallic 1), wood or glass-covered frames, wall plaques; 0–3 pedestals (stone, wood, painted) with a metal or
 ceramic exhibit (twisted sculpture, vase, bowl, sphere, box), sometimes in a glass case; a bench and a sign stand;
 the HDR probe, its rotation and tint, 0–4 lamps (spots on paintings, points, ceiling panels), the lamps' share of
@@ -130,7 +130,7 @@ def _draw_room(rng: np.random.Generator) -> Room:
                 openings.append(o)
     ceil_mat = Material(base_color=_hsv(rng.uniform(0.05, 0.15), rng.uniform(0.0, 0.08), rng.uniform(0.7, 0.92)), roughness=float(rng.uniform(0.8, 0.95)))
     return Room(x=x, y=y, height=float(H), walls=WALLS, wall_materials=tuple(mats), floor=_floor_material(rng, x, y), ceiling=ceiling,
-                ceiling_material=ceil_mat, openings=tuple(openings), well_depth=float(rng.uniform(0.0, 0.6)) if openings else 0.0)
+                ceiling_material=ceil_mat, openings=tuple(openings), well_depth=0.0)
 
 
 def _draw_paintings(rng: np.random.Generator, room: Room) -> tuple[Painting, ...]:
