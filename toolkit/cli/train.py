@@ -158,8 +158,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.resume:
         _check_resume(args)
 
+    from ..distributed import init_from_env, shutdown
     from ..train import make_config, train
 
+    ddp = init_from_env(args.device)  # launched by torchrun with WORLD_SIZE > 1: data-parallel
     seed = 0 if args.seed is None else args.seed
     overrides: dict = {"seed": seed, "device": args.device, "minutes": args.minutes, "steps": args.steps}
     if args.scene_type != "auto":
@@ -183,9 +185,13 @@ def cmd_train(args: argparse.Namespace) -> int:
     if snapshots:
         overrides["snapshot_minutes"] = snapshots
     cfg = make_config(args.preset or "fast", **overrides)
-    ck = train(args.scene, args.out, cfg, resume=args.resume, split=args.split or "train",
-               progress_bar=not args.quiet, priors_root=args.priors, force=args.force)
-    print(f"run: {Path(args.out)}  checkpoint: {ck}")
+    try:
+        ck = train(args.scene, args.out, cfg, resume=args.resume, split=args.split or "train",
+                   progress_bar=not args.quiet, priors_root=args.priors, force=args.force)
+    finally:
+        shutdown()
+    if ddp is None or ddp.is_main:
+        print(f"run: {Path(args.out)}  checkpoint: {ck}")
     return 0
 
 

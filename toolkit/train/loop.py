@@ -12,6 +12,7 @@ from pathlib import Path
 import torch
 
 from .._checks import ConfigError
+from ..distributed import current as current_distributed
 from ..io import save_torch, write_json
 from ..sampling import OccupancyGrid
 from ..scene import load_scene
@@ -69,6 +70,9 @@ def load_checkpoint(path: Path, state: TrainState) -> TrainState:
     state.light_optimizer.load_state_dict(ck["light_optimizer"])
     state.occupancy = OccupancyGrid.from_state_dict(ck["occupancy"]).to(state.device)
     state.generator.set_state(ck["generator"])
+    ddp = current_distributed()
+    if ddp is not None:  # every rank its own saved stream (or a fresh one at another world size)
+        ddp.restore_generator(state, ck)
     state.step = int(ck["step"])
     state.elapsed = float(ck["elapsed"])
     state.snapshots_done = list(ck.get("snapshots_done", []))
@@ -125,6 +129,11 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
     from tqdm import tqdm
 
     log = log or (lambda m: print(m, file=sys.stderr))
+    ddp = current_distributed()  # a data-parallel run (torchrun): toolkit.distributed
+    main = ddp is None or ddp.is_main
+    world_size = 1 if ddp is None else ddp.world_size
+    if not main:  # rank 0 alone logs and writes the run
+        log, progress_bar = (lambda m: None), False
     out = Path(out_dir)
     ck_path = out / "checkpoint.pt"
     cfg_path = out / "config.json"
@@ -148,24 +157,51 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
     if cfg.device != "auto" and cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"device={cfg.device} requested but CUDA is not available")
     scene = load_scene(scene_path, split)
+    if ddp is not None:  # rank 0 resolves the box and grid; the others take its config
+        if main:
+            cfg, _ = resolve_config(cfg, scene, log)
+        cfg = ddp.broadcast_object(cfg)
     cfg, scene = resolve_config(cfg, scene, log)
-    data = prepare_data(scene, cfg, log, priors_root)
-    state = init_state(cfg, data)
+    local = (lambda c: c) if ddp is None else ddp.local_config  # this rank's share of the global batch
+    data = prepare_data(scene if ddp is None else ddp.shard(scene), local(cfg), log, priors_root)
+    state = init_state(local(cfg), data)
+    if ddp is not None:
+        ddp.check_supported(cfg, data)
+        state.grad_sync = ddp.average_gradients
+        ddp.seed_generator(state)
+        ddp.broadcast_state(state)
+        log(f"[dars] data-parallel: {world_size} processes ({ddp.backend}), {len(data.scene)} photos and "
+            f"{state.cfg.batch_rays} of {cfg.batch_rays} rays per step on each")
     if resume:
         load_checkpoint(ck_path, state)
         log(f"[dars] resumed {out} at step {state.step} ({state.elapsed / 60:.1f} min)")
-    folder.begin()  # creates the folder only now, when the run is about to be written
+    if ddp is not None:
+        ddp.barrier()  # every rank has checked the folder before rank 0 writes to it
+    if main:
+        folder.begin()  # creates the folder only now, when the run is about to be written
+
+    def save(path: Path, collective: bool = True) -> None:
+        """Rank 0 writes the checkpoint (the run's global config, every rank's RNG state)."""
+        gens = ddp.gather_objects(state.generator.get_state()) if ddp is not None and collective else None
+        if main:
+            ck = _checkpoint_dict(state)
+            ck.update(config=cfg.to_dict(), world_size=world_size)
+            if gens is not None:
+                ck["generators"] = gens
+            save_torch(path, ck)
 
     def write_run_config(calibration):
+        if not main:
+            return
         write_json(cfg_path, {"config": cfg.to_dict(), "scene": str(Path(scene_path).resolve()), "split": split,
                               "priors_root": str(Path(priors_root).resolve()) if priors_root else None,
                               "priors": data.priors_used, "l_env_init": data.l_env_init.tolist(),
                               "l_env_source": data.l_env_source, "torch": torch.__version__,
-                              "calibration": calibration})
+                              "calibration": calibration, "world_size": world_size})
 
     write_run_config(saved_calibration)
     log_path = out / "log.jsonl"
-    if not resume and log_path.exists():
+    if main and not resume and log_path.exists():
         log_path.unlink()
     total = cfg.steps if cfg.steps else None
     bar = tqdm(total=total, initial=state.step, disable=not progress_bar, file=sys.stderr, dynamic_ncols=True,
@@ -185,6 +221,8 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                 state.occupancy.update(state.field.density, state.generator,
                                        all_cells=state.step < cfg.occupancy_warmup,
                                        warmup=state.step < cfg.occupancy_warmup)
+                if ddp is not None:  # each rank probed its own random cells: rank 0's grid for all
+                    ddp.sync_occupancy(state.occupancy)
             in_b = progress(state) >= cfg.pretrain_fraction
             if (in_b and not cfg.fixed_light and cfg.shading == "pbr"
                     and state.step % cfg.light_period < cfg.light_steps):
@@ -195,31 +233,43 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
             state.step += 1
             state.elapsed += time.monotonic() - t0
             last.update(res)
+            # what depends on the clock; in a data-parallel run rank 0's clock decides for every rank
+            n_win = max(1, min(24, cfg.calibration_steps // 4))
+            calibrate = not cfg.steps and (state.step >= cfg.calibration_steps
+                                           or state.elapsed >= 60.0 * cfg.minutes)
+            snaps = [m not in state.snapshots_done and state.elapsed >= 60.0 * m for m in cfg.snapshot_minutes]
+            checkpoint = (state.step % cfg.checkpoint_every == 0 or time.monotonic() - t_last_ck > 300
+                          or first_checkpoint_due(state, ck_path))
+            if ddp is not None:
+                calibrate, *snaps, checkpoint = ddp.decide(calibrate, *snaps, checkpoint)
             if not cfg.steps:  # a minutes budget: fix the step count once the first steps are timed
-                n_win = max(1, min(24, cfg.calibration_steps // 4))
                 if state.step == cfg.calibration_steps - n_win:
                     t_window = state.elapsed
-                if state.step >= cfg.calibration_steps or state.elapsed >= 60.0 * cfg.minutes:
+                if calibrate:
                     full = state.step >= cfg.calibration_steps and t_window is not None
                     rec = calibrate_steps(state, cfg.minutes, state.elapsed - (t_window if full else 0.0),
                                           n_win if full else state.step, log)
+                    if ddp is not None:
+                        rec = ddp.broadcast_object(rec)
                     cfg = replace(cfg, steps=rec["steps"])
-                    state.cfg = cfg
+                    state.cfg = local(cfg)
                     bar.total = cfg.steps
                     write_run_config(rec)
             if state.step % cfg.log_every == 0 or state.step == 1:
+                if ddp is not None:  # the batch's loss and PSNR over every rank's rays
+                    last = ddp.average_scalars(last, ("loss", "psnr"))
                 rec = {"kind": "train", "step": state.step, "elapsed": round(state.elapsed, 2),
                        "lr": state.optimizer.param_groups[0]["lr"], "occupancy": state.occupancy.occupancy_fraction(),
-                       **{k: v for k, v in last.items()}}
-                with open(log_path, "a") as f:
-                    f.write(json.dumps(rec) + "\n")
-            for m in cfg.snapshot_minutes:
-                if m not in state.snapshots_done and state.elapsed >= 60.0 * m:
-                    save_checkpoint(state, out / "snapshots" / f"checkpoint_{m:g}min.pt")
+                       **{k: v for k, v in last.items()}, "world_size": world_size}
+                if main:
+                    with open(log_path, "a") as f:
+                        f.write(json.dumps(rec) + "\n")
+            for m, due in zip(cfg.snapshot_minutes, snaps):
+                if due:
+                    save(out / "snapshots" / f"checkpoint_{m:g}min.pt")
                     state.snapshots_done.append(m)
-            if (state.step % cfg.checkpoint_every == 0 or time.monotonic() - t_last_ck > 300
-                    or first_checkpoint_due(state, ck_path)):
-                save_checkpoint(state, ck_path)
+            if checkpoint:
+                save(ck_path)
                 t_last_ck = time.monotonic()
             bar.update(1)
             if "psnr" in last:
@@ -227,24 +277,39 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                                     f"{last.get('stage', '')}".strip())
     except TrainingDiverged as e:
         bar.close()
-        folder.finish()
+        if main:
+            folder.finish()
         log(f"[dars] {e}")
         raise
     except KeyboardInterrupt:
         bar.close()
-        save_checkpoint(state, ck_path)
-        folder.finish()
+        save(ck_path, collective=False)  # the other ranks may be gone: rank 0's RNG state only
+        if main:
+            folder.finish()
         log(f"[dars] interrupted at step {state.step}; checkpoint saved, continue with --resume")
         raise
     bar.close()
-    save_checkpoint(state, ck_path)
-    for m in cfg.snapshot_minutes:  # a budget that ends exactly at a milestone
-        if m not in state.snapshots_done and state.elapsed >= 60.0 * m - 1.0:
-            save_checkpoint(state, out / "snapshots" / f"checkpoint_{m:g}min.pt")
-    try:
-        _plot_curves(log_path, out / "loss_curves.png")
-    except Exception as e:  # noqa: BLE001 - a plot must never lose a finished run
-        log(f"[dars] could not plot loss curves: {e}")
-    folder.finish()
+    save(ck_path)
+    snaps = [m not in state.snapshots_done and state.elapsed >= 60.0 * m - 1.0 for m in cfg.snapshot_minutes]
+    if ddp is not None:
+        snaps = ddp.decide(*snaps) if snaps else []
+    for m, due in zip(cfg.snapshot_minutes, snaps):  # a budget that ends exactly at a milestone
+        if due:
+            save(out / "snapshots" / f"checkpoint_{m:g}min.pt")
+    if ddp is not None:  # the copies must be identical: record each rank's parameter digest
+        digests = ddp.parameter_digests(state)
+        in_sync = len(set(digests)) == 1
+        if main:
+            with open(log_path, "a") as f:
+                f.write(json.dumps({"kind": "distributed", "step": state.step, "world_size": world_size,
+                                    "backend": ddp.backend, "parameter_digests": digests, "in_sync": in_sync}) + "\n")
+        if not in_sync:
+            log(f"[dars] warning: the ranks' parameters differ at the end ({digests}); rank 0's are saved")
+    if main:
+        try:
+            _plot_curves(log_path, out / "loss_curves.png")
+        except Exception as e:  # noqa: BLE001 - a plot must never lose a finished run
+            log(f"[dars] could not plot loss curves: {e}")
+        folder.finish()
     log(f"[dars] trained {state.step} steps in {state.elapsed / 60:.1f} min -> {ck_path}")
     return ck_path

@@ -49,6 +49,9 @@ class TrainState:
     snapshots_done: list = dc_field(default_factory=list)
     bad_steps: int = 0
     """Consecutive steps skipped for non-finite gradients (see :data:`MAX_BAD_STEPS`)."""
+    grad_sync: Any = None
+    """``grad_sync(optimizer)`` after each backward pass (data-parallel runs average gradients over the ranks:
+    :meth:`toolkit.distributed.Distributed.average_gradients`); None: a single process."""
 
 
 MAX_BAD_STEPS = 5
@@ -307,6 +310,8 @@ def train_step(state: TrainState, data: TrainData) -> dict:
                                "(--lr-scale) or check the input images")
     state.optimizer.zero_grad(set_to_none=True)
     loss.backward()
+    if state.grad_sync is not None:
+        state.grad_sync(state.optimizer)
     grads = [(g.get("name", "?"), p.grad) for g in state.optimizer.param_groups for p in g["params"]
              if p.grad is not None]
     finite = torch.stack([torch.isfinite(gr).all() for _, gr in grads]).tolist() if grads else []  # one sync per step
@@ -348,6 +353,8 @@ def light_step(state: TrainState, data: TrainData) -> dict:
             raise TrainingDiverged(f"light step loss is {loss.item()} at step {state.step}; training stopped")
         state.light_optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if state.grad_sync is not None:
+            state.grad_sync(state.light_optimizer)
         state.light_optimizer.step()
     finally:
         for p, r in zip(state.field.parameters(), req):

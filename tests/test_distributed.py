@@ -1,0 +1,72 @@
+"""Data-parallel training (toolkit.distributed): a 2-process gloo run on CPU launched by torchrun, as a user runs it."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from synthetic import make_scene
+from toolkit.distributed import Distributed, split_count
+from toolkit.train import load_run, make_config, train
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    return make_scene(tmp_path_factory.mktemp("tiny"), n_train=16, n_test=4)
+
+
+def _env():
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("WORLD_SIZE", None)
+    return env
+
+
+def _torchrun(n: int, *args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(n),
+           "-m", "toolkit.cli", *args]
+    return subprocess.run(cmd, cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=timeout)
+
+
+def test_split_count_and_local_config():
+    assert [split_count(10, r, 3) for r in range(3)] == [4, 3, 3]
+    cfg = make_config("fast", batch_rays=4096, steps=10)
+    parts = [Distributed(r, 2, r, "gloo").local_config(cfg) for r in range(2)]
+    assert sum(p.batch_rays for p in parts) == 4096 and sum(p.ssim_patches for p in parts) == cfg.ssim_patches
+    assert all(p.device == "cpu" for p in parts)
+
+
+def test_two_process_gloo_training_stays_in_sync_and_evaluates(tiny, tmp_path):
+    run = tmp_path / "run"
+    p = _torchrun(2, "train", str(tiny), "--out", str(run), "--steps", "8", "--threads", "1", "--batch-rays", "512",
+                  "--quiet")
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-4000:]
+    assert p.stdout.count("run: ") == 1  # rank 0 alone reports (and writes)
+    rows = [json.loads(x) for x in (run / "log.jsonl").read_text().splitlines()]
+    train_rows = [r for r in rows if r["kind"] == "train"]
+    assert train_rows and all(r["world_size"] == 2 for r in train_rows)
+    dist = [r for r in rows if r["kind"] == "distributed"]
+    assert len(dist) == 1 and dist[0]["world_size"] == 2 and dist[0]["backend"] == "gloo"
+    digests = dist[0]["parameter_digests"]
+    assert len(digests) == 2 and digests[0] == digests[1] and dist[0]["in_sync"], digests  # identical copies
+    meta = json.loads((run / "config.json").read_text())
+    assert meta["world_size"] == 2 and meta["config"]["batch_rays"] == 512  # the global batch
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert ck["step"] == 8 and ck["world_size"] == 2 and len(ck["generators"]) == 2
+    assert not list(run.glob(".*.tmp"))  # written atomically, once
+
+    # --resume at another world size (1 process) continues the run
+    train(None, run, make_config("fast", steps=10), resume=True, progress_bar=False, log=lambda m: None)
+    assert load_run(run, with_weights=False).step == 10
+    assert json.loads((run / "config.json").read_text())["world_size"] == 1
+
+    e = subprocess.run([sys.executable, "-m", "toolkit.cli", "eval", str(run), "--json", "--limit", "2", "--quiet"],
+                       cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=240)
+    assert e.returncode == 0, e.stderr[-3000:]
+    out = json.loads(e.stdout)
+    assert out["eval"]["checkpoint_step"] == 10 and out["eval"]["views"] == 2
