@@ -18,13 +18,13 @@ from pathlib import Path
 
 from .._checks import DarsError
 from ..outputs import release_all
-from . import asset, evaluate, info, onnx, poses, priors, train, view
+from . import asset, evaluate, info, onnx, poses, priors, train, train_many, view
 
 __all__ = ["COMMANDS", "build_parser", "main", "describe_os_error"]
 
-COMMANDS = (info, poses, train, priors, asset, view, onnx, evaluate)
+COMMANDS = (info, poses, train, priors, asset, view, onnx, evaluate, train_many)
 """The subcommand modules, in ``dars --help`` order: info and contact-sheet; poses; train, render, relight; priors; mesh,
-bake, export-asset; view, export-web; export-onnx, infer; eval, ablate."""
+bake, export-asset; view, export-web; export-onnx, infer; eval, ablate; train-many."""
 
 
 def build_parser() -> argparse.ArgumentParser:
