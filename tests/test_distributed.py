@@ -54,6 +54,7 @@ def test_two_process_gloo_training_stays_in_sync_and_evaluates(tiny, tmp_path):
     assert len(dist) == 1 and dist[0]["world_size"] == 2 and dist[0]["backend"] == "gloo"
     digests = dist[0]["parameter_digests"]
     assert len(digests) == 2 and digests[0] == digests[1] and dist[0]["in_sync"], digests  # identical copies
+    assert len(dist[0]["peak_rss_mb"]) == 2 and min(dist[0]["peak_rss_mb"]) > 0
     meta = json.loads((run / "config.json").read_text())
     assert meta["world_size"] == 2 and meta["config"]["batch_rays"] == 512  # the global batch
     ck = torch.load(run / "checkpoint.pt", weights_only=False)

@@ -35,7 +35,7 @@ import torch
 
 from ._checks import ConfigError
 
-__all__ = ["Distributed", "init_from_env", "current", "shutdown", "split_count", "world_size_from_env"]
+__all__ = ["Distributed", "init_from_env", "current", "shutdown", "split_count", "world_size_from_env", "peak_rss_mb"]
 
 _CURRENT: "Distributed | None" = None
 
@@ -217,6 +217,15 @@ class Distributed:
             state.generator.set_state(saved[self.rank])
         elif self.rank:
             state.generator.manual_seed(rank_seed(state.cfg.seed, self.rank, state.step))
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory in MB (Linux ``ru_maxrss``; 0 where ``resource`` is missing)."""
+    try:
+        import resource
+    except ImportError:
+        return 0.0
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
 
 
 def rank_seed(seed: int, rank: int, step: int) -> int:

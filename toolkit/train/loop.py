@@ -13,6 +13,7 @@ import torch
 
 from .._checks import ConfigError
 from ..distributed import current as current_distributed
+from ..distributed import peak_rss_mb
 from ..io import save_torch, write_json
 from ..sampling import OccupancyGrid
 from ..scene import load_scene
@@ -299,10 +300,12 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
     if ddp is not None:  # the copies must be identical: record each rank's parameter digest
         digests = ddp.parameter_digests(state)
         in_sync = len(set(digests)) == 1
+        rss = ddp.gather_objects(peak_rss_mb())
         if main:
             with open(log_path, "a") as f:
                 f.write(json.dumps({"kind": "distributed", "step": state.step, "world_size": world_size,
-                                    "backend": ddp.backend, "parameter_digests": digests, "in_sync": in_sync}) + "\n")
+                                    "backend": ddp.backend, "parameter_digests": digests, "in_sync": in_sync,
+                                    "peak_rss_mb": rss}) + "\n")
         if not in_sync:
             log(f"[dars] warning: the ranks' parameters differ at the end ({digests}); rank 0's are saved")
     if main:
