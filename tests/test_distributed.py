@@ -71,3 +71,33 @@ def test_two_process_gloo_training_stays_in_sync_and_evaluates(tiny, tmp_path):
     assert e.returncode == 0, e.stderr[-3000:]
     out = json.loads(e.stdout)
     assert out["eval"]["checkpoint_step"] == 10 and out["eval"]["views"] == 2
+
+
+def _test_psnr(run_dir) -> float:
+    from toolkit.io import linear_to_srgb
+    from toolkit.metrics import psnr
+    from toolkit.scene import load_scene
+
+    run = load_run(run_dir)
+    sc = load_scene(run.scene_path, "test")
+    vals = [float(psnr(linear_to_srgb(run.render(sc.cameras, i).rgb.clamp(0, 1)).permute(2, 0, 1), sc.load_image(i)))
+            for i in range(len(sc))]
+    return sum(vals) / len(vals)
+
+
+@pytest.mark.slow
+def test_two_processes_match_one_within_seed_noise(tiny, tmp_path):
+    """Equal global batch and steps: the 2-process run's test PSNR is within the seed noise of 1-process runs."""
+    args = ["--steps", "80", "--threads", "1", "--batch-rays", "512", "--quiet"]
+    p = _torchrun(2, "train", str(tiny), "--out", str(tmp_path / "two"), *args)
+    assert p.returncode == 0, p.stderr[-4000:]
+    one = []
+    for seed in (0, 1):
+        q = subprocess.run([sys.executable, "-m", "toolkit.cli", "train", str(tiny), "--out", str(tmp_path / f"one{seed}"),
+                            "--seed", str(seed), *args], cwd=ROOT, env=_env(), capture_output=True, text=True,
+                           timeout=240)
+        assert q.returncode == 0, q.stderr[-3000:]
+        one.append(_test_psnr(tmp_path / f"one{seed}"))
+    two = _test_psnr(tmp_path / "two")
+    noise = abs(one[0] - one[1])
+    assert abs(two - one[0]) <= max(3 * noise, 1.5), (two, one)
