@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from synthetic import make_scene
+from toolkit._checks import ConfigError
 from toolkit.distributed import Distributed, split_count
 from toolkit.train import load_run, make_config, train
 
@@ -39,6 +40,12 @@ def test_split_count_and_local_config():
     parts = [Distributed(r, 2, r, "gloo").local_config(cfg) for r in range(2)]
     assert sum(p.batch_rays for p in parts) == 4096 and sum(p.ssim_patches for p in parts) == cfg.ssim_patches
     assert all(p.device == "cpu" for p in parts)
+    small = Distributed(1, 2, 1, "gloo").local_config(make_config("fast", batch_rays=512, steps=1))
+    assert small.batch_rays == 256 and small.ssim_patches == 0  # a patch would fill the rank's whole batch
+    with pytest.raises(ConfigError, match="each rank needs at least 16 rays"):
+        Distributed(0, 4, 0, "gloo").local_config(make_config("fast", batch_rays=32, steps=1))
+    with pytest.raises(ConfigError, match="colour correction .* not supported with 2 processes"):
+        Distributed(0, 2, 0, "gloo").check_supported(make_config("fast", colour_correction="on"), None)
 
 
 def test_two_process_gloo_training_stays_in_sync_and_evaluates(tiny, tmp_path):

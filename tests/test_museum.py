@@ -77,3 +77,17 @@ def test_train_many_runs_and_resumes(tiny, tmp_path, capsys):
     plan = {s["stage"]: s for s in json.loads(capsys.readouterr().out)["room1"]}
     assert [k for k, s in plan.items() if s["run"]] == ["train", "eval", "export-asset"]
     assert "--resume" in plan["train"]["command"] and "70" in plan["train"]["command"]
+
+
+def test_failing_scenes_are_reported_and_the_rest_go_on(tiny, tmp_path, capsys):
+    man = _write(tmp_path / "m.json", {"defaults": {"steps": 5, "priors": [], "train_args": ["--batch-rays", "8"]},
+                                       "scenes": [{"name": "a", "scene": str(tiny)}, {"name": "b", "scene": str(tiny)}]})
+    out = tmp_path / "out"
+    assert main(["train-many", str(man), "--out", str(out), "--jobs", "2"]) == 2
+    assert "2 of 2 scenes failed (a, b)" in capsys.readouterr().err
+    rows = json.loads((out / "summary.json").read_text())["scenes"]
+    assert [r["name"] for r in rows] == ["a", "b"]
+    for r in rows:
+        assert r["status"] == "failed" and r["failed_stage"] == "train" and r["exit_code"] == 2
+        assert "batch-rays 8" in r["error"] and (out / r["name"] / "logs" / "train.log").is_file()
+    assert "failed at train" in (out / "summary.md").read_text()
