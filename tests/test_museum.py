@@ -50,6 +50,14 @@ def test_manifest_forms(tiny, tmp_path):
     train = [s for s in scene_stages(b, tmp_path / "out" / "two") if s.name == "train"][0]
     assert "torch.distributed.run" in train.argv and "--nproc_per_node" in train.argv  # data-parallel training
 
+    (tmp_path / "photos").mkdir()
+    (c,) = read_manifest(_write(tmp_path / "p.json", [{"name": "hall", "photos": "photos", "steps": 5}]))
+    stages = scene_stages(c, tmp_path / "out" / "hall")
+    assert [s.name for s in stages] == ["poses", "priors-weights", "train", "eval", "export-asset"]
+    scene = str(tmp_path / "out" / "hall" / "scene")
+    assert stages[0].argv[3:6] == ["poses", str(tmp_path / "photos"), "--out"] and scene in stages[0].argv
+    assert scene in stages[1].argv and scene in stages[2].argv  # the later stages read the posed scene
+
 
 def test_train_many_runs_and_resumes(tiny, tmp_path, capsys):
     man = _write(tmp_path / "museum.json", [{
