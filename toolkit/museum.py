@@ -41,7 +41,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -459,7 +459,3 @@ def run_museum(jobs: list[SceneJob], out: str | os.PathLike, jobs_at_once: int =
     write_summary(out, ordered)
     return ordered
 
-
-def job_dict(job: SceneJob) -> dict:
-    """A scene as JSON-ready fields (for ``--json`` and the summary)."""
-    return asdict(job)
