@@ -1,4 +1,5 @@
 import json
+import math
 
 import pytest
 import torch
@@ -239,3 +240,65 @@ def test_room_layer_fades_in_after_stage_a_and_the_background_restarts_dark(tmp_
     ramp = [w for s, w, _ in seen if s > 10]
     assert ramp[0] == pytest.approx(0.05 / SHELL_FADE) and ramp == sorted(ramp) and ramp[-1] == 1.0
     assert seen[11][2] < 0.1 * seen[10][2], "the environment restarts dark when the layer comes on"
+
+
+# ------------------------------------------------------------------------------------------------ photos in, memory
+def _mixed_sizes(src, dst):
+    """A copy of the tiny scene whose training photos come in three sizes: every third cropped to portrait 24x32,
+    the next to landscape 32x20 (per-frame w, h, fl_x, cx, cy), the rest 32x32; labels and metal masks cropped too."""
+    import shutil
+
+    import cv2
+
+    shutil.copytree(src, dst)
+    meta = json.loads((dst / "transforms_train.json").read_text())
+    focal = 0.5 * 32 / math.tan(0.5 * meta["camera_angle_x"])
+    for k, fm in enumerate(meta["frames"]):
+        r0, r1, c0, c1 = {0: (0, 32, 4, 28), 1: (6, 26, 0, 32)}.get(k % 3, (0, 32, 0, 32))
+        for key in ("file_path", "semantic_path", "metal_path"):
+            p = str(dst / fm[key])
+            cv2.imwrite(p, cv2.imread(p, cv2.IMREAD_UNCHANGED)[r0:r1, c0:c1])
+        fm.update(w=c1 - c0, h=r1 - r0, fl_x=focal, fl_y=focal, cx=16.0 - c0, cy=16.0 - r0)
+    (dst / "transforms_train.json").write_text(json.dumps(meta))
+    return dst
+
+
+def test_training_on_photos_of_different_sizes(tiny, tmp_path):
+    """Portrait, landscape and square photos in one run: packed pixels, labels, metal and W maps of each view's own
+    size; the DARS sampler and renderer read each view at its size."""
+    scene = _mixed_sizes(tiny, tmp_path / "mixed")
+    sc = load_scene(scene, "train")
+    assert {(int(h), int(w)) for h, w in zip(sc.cameras.height, sc.cameras.width)} == {(32, 24), (20, 32), (32, 32)}
+    train(scene, tmp_path / "r", _small(steps=30), progress_bar=False, log=lambda m: None)
+    run = load_run(tmp_path / "r")
+    assert run.weight_maps[0].shape == (32, 24) and run.weight_maps[1].shape == (20, 32)
+    assert run.weight_maps[2].shape == (32, 32)
+    assert run.weight_maps.data.dtype == torch.float16
+    out = run.render(run.train_scene.cameras, 1)
+    assert out.rgb.shape[:2] == (20, 32) and bool(torch.isfinite(out.rgb).all())
+    priors = json.loads((tmp_path / "r" / "config.json").read_text())["priors"]
+    assert priors["labels"] == "provided" and priors["metal"] == "provided"
+
+
+def test_downscale_is_recorded_and_used_by_render_and_resume(tiny, tmp_path, capsys):
+    from toolkit.cli import main
+
+    run_dir = tmp_path / "d"
+    train(tiny, run_dir, _small(steps=4), progress_bar=False, log=lambda m: None, downscale=2)
+    assert json.loads((run_dir / "config.json").read_text())["downscale"] == 2
+    run = load_run(run_dir)
+    assert run.downscale == 2 and run.train_scene.image_size == (16, 16) and run.weight_maps[0].shape == (16, 16)
+    assert run.load_split("test").image_size == (16, 16)
+    with pytest.raises(DarsError, match="--downscale 2, not 4"):
+        train(tiny, run_dir, _small(steps=8), resume=True, progress_bar=False, log=lambda m: None, downscale=4)
+    train(tiny, run_dir, _small(steps=6), resume=True, progress_bar=False, log=lambda m: None)
+    assert load_run(run_dir).step == 6 and json.loads((run_dir / "config.json").read_text())["downscale"] == 2
+    # a run folder written before --downscale existed (no key) loads at full size
+    meta = json.loads((run_dir / "config.json").read_text())
+    del meta["downscale"]
+    (run_dir / "config.json").write_text(json.dumps(meta))
+    assert load_run(run_dir).train_scene.image_size == (32, 32)
+    with pytest.raises(SystemExit) as e:
+        main(["train", str(tiny), "--out", str(tmp_path / "z"), "--steps", "2", "--downscale", "0"])
+    assert e.value.code == 2
+    assert "--downscale: expected a positive integer, got '0'" in capsys.readouterr().err

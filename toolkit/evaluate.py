@@ -308,7 +308,7 @@ def training_sample_counts(run, index: int, chunk: int | None = None) -> dict[st
     if sampler.dars and run.weight_maps is not None:
         wm = run.weight_maps.to(dev)
         dars = DarsContext(cams, wm, neighbour_views(scene.cameras, sampler.n_neighbours).to(dev))
-        ray_w = wm[index].reshape(-1)
+        ray_w = wm[index].reshape(-1)  # view `index` as float [H, W]
     chunk = chunk or h * w  # one chunk: the budget is shared over the whole image, as over a training batch
     total, fine = [], []
     for s in range(0, len(rays), chunk):
@@ -461,7 +461,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     log = log or (lambda m: print(m, file=sys.stderr))
     if not isinstance(run, Run):
         raise DarsError(f"evaluate_run: expected a loaded run (toolkit.train.load_run(RUN)), got {type(run).__name__}")
-    scene = load_scene(run.scene_path, split)
+    scene = run.load_split(split)
     if len(scene) == 0:
         raise DarsError(f"evaluate_run: split '{split}' of {run.scene_path} has no views")
     dev = _device_of(run)
@@ -745,15 +745,16 @@ def _weight_figures(run, cfg: EvalConfig, figures: EvalFigures) -> dict:
     tr = run.train_scene
     idx = uniform_view_indices(len(tr), min(cfg.weight_views, len(tr)))
     if run.weight_maps is not None:
-        wmaps = run.weight_maps[idx].float().cpu()
+        wmaps = [run.weight_maps[i].float().cpu() for i in idx]
         w_source = "the run's W maps (used by its DARS sampler)"
     else:
         from .edges import WeightMapConfig, weight_map
 
-        imgs = tr.load_images(idx)
-        labels = torch.stack([tr.load_extra(i, "semantic") for i in idx]) if tr.has_extra("semantic") else None
-        metal = torch.stack([tr.load_extra(i, "metal") for i in idx]) if tr.has_extra("metal") else None
-        wmaps = weight_map(imgs, labels, metal, WeightMapConfig()).weights.float().cpu()
+        wmaps = []
+        for i in idx:  # one view at a time: views may differ in size
+            labels = tr.load_extra(i, "semantic")[None] if tr.has_extra("semantic") else None
+            metal = tr.load_extra(i, "metal")[None] if tr.has_extra("metal") else None
+            wmaps.append(weight_map(tr.load_image(i)[None], labels, metal, WeightMapConfig()).weights[0].float().cpu())
         w_source = "recomputed (the run does not sample by W: DARS off)"
     stats: dict[str, list[float]] = {k: [] for k in ("mean", "min", "max", "fine_mean", "fine_min", "fine_max")}
     for k, i in enumerate(idx):

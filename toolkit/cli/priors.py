@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from .._checks import DarsError
-from ._common import SCENE_HELP, print_json
+from ._common import SCENE_HELP, positive_int, print_json
 
 _LM = ["(0,0)", "(1,-1)", "(1,0)", "(1,1)", "(2,-2)", "(2,-1)", "(2,0)", "(2,1)", "(2,2)"]
 """(l, m) of the 9 SH coefficients, SPEC order (table rows)."""
@@ -63,6 +63,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def _common(q: argparse.ArgumentParser, stage: str) -> None:
     q.add_argument("scene", help=SCENE_HELP)
     q.add_argument("--split", default="train", help="split to process (default: train)")
+    q.add_argument("--downscale", type=positive_int, default=1, metavar="N",
+                   help="shrink the photos N times on load (default: 1; `dars train` reads maps made at another "
+                        "--downscale, resized)")
     q.add_argument("--out", default=None, help=f"output directory (default: <scene>/priors/{stage})")
     q.add_argument("--force", action="store_true", help="overwrite files in the output directory that dars did not write")
     q.add_argument("--json", action="store_true", help="print only JSON on stdout")
@@ -103,7 +106,7 @@ def cmd_weights(args: argparse.Namespace) -> int:
     from ..priors import priors_weights
     from ..scene import load_scene
 
-    scene = load_scene(args.scene, args.split)
+    scene = load_scene(args.scene, args.split, downscale=args.downscale)
     cfg = WeightMapConfig(alpha=args.alpha, beta=args.beta, gamma=args.gamma, lambda_reg=args.lambda_reg)
     s = priors_weights(scene, args.out, cfg, labels=args.labels, use_metal=not args.no_metal, force=args.force)
     if args.json:
@@ -125,10 +128,10 @@ def cmd_segment(args: argparse.Namespace) -> int:
     from ..scene import list_splits, load_scene
     from ..segment import TrainSegmenterConfig
 
-    scene = load_scene(args.scene, args.split)
+    scene = load_scene(args.scene, args.split, downscale=args.downscale)
     eval_scene = None
     if args.eval_split != "none" and args.eval_split != args.split and args.eval_split in list_splits(args.scene):
-        eval_scene = load_scene(args.scene, args.eval_split)
+        eval_scene = load_scene(args.scene, args.eval_split, downscale=args.downscale)
     tcfg = TrainSegmenterConfig(steps=args.steps, seed=args.seed, progress=True) if args.backend == "builtin" else None
     info = priors_segment(scene, args.out, args.backend, args.model, args.train_every, eval_scene, tcfg,
                           export_onnx=None if args.no_onnx else export_segmenter_onnx, force=args.force)
@@ -152,7 +155,7 @@ def cmd_colour(args: argparse.Namespace) -> int:
     from ..priors import priors_colour
     from ..scene import load_scene
 
-    scene = load_scene(args.scene, args.split)
+    scene = load_scene(args.scene, args.split, downscale=args.downscale)
     cfg = ColourConfig(detector=args.detector, gauge="reference" if args.reference is not None else args.gauge,
                        reference=args.reference or 0, srgb=scene.srgb, progress=True)
     d = priors_colour(scene, args.out, cfg, force=args.force)
@@ -174,7 +177,7 @@ def cmd_light(args: argparse.Namespace) -> int:
     from ..priors import priors_light
     from ..scene import load_scene
 
-    scene = load_scene(args.scene, args.split)
+    scene = load_scene(args.scene, args.split, downscale=args.downscale)
     info = priors_light(scene, args.out, args.weights, args.reduce, args.batch_size, args.force)
     if args.json:
         print_json(info)

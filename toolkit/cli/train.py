@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from .._checks import DarsError
-from ._common import set_threads
+from ._common import positive_int, set_threads
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -22,6 +22,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--resume", action="store_true", help="continue the run in --out")
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--split", default="train")
+    q.add_argument("--downscale", type=positive_int, default=1, metavar="N",
+                   help="shrink the photos N times on load (default: 1); memory and time fall with N^2. Recorded in "
+                        "the run: render, relight and eval use the same size")
     q.add_argument("--priors", help="directory holding the prior stages' outputs (default: <scene>/priors)")
     q.add_argument("--no-dars", action="store_true", help="ablation: uniform rays + hierarchical sampling")
     q.add_argument("--no-semantics", action="store_true", help="ablation: no semantic guidance")
@@ -106,7 +109,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             raise DarsError(f"--snapshots must be comma-separated minutes, got {args.snapshots!r}") from e
     cfg = make_config(args.preset, **overrides)
     ck = train(args.scene, args.out, cfg, resume=args.resume, split=args.split, progress_bar=not args.quiet,
-               priors_root=args.priors)
+               priors_root=args.priors, downscale=args.downscale)
     print(f"run: {Path(args.out)}  checkpoint: {ck}")
     return 0
 
@@ -122,7 +125,7 @@ def _cameras_for(args, run):
         cams = orbit_cameras(run.train_scene.cameras, run.train_scene.aabb, args.orbit)
         return cams, [f"orbit_{i:03d}" for i in range(len(cams))]
     else:
-        scene = load_scene(run.scene_path, args.split)
+        scene = run.load_split(args.split)
     return scene.cameras, [f.key for f in scene.frames]
 
 
