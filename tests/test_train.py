@@ -264,11 +264,19 @@ def _mixed_sizes(src, dst):
 
 
 def test_training_on_photos_of_different_sizes(tiny, tmp_path):
-    """Portrait, landscape and square photos in one run: packed pixels, labels, metal and W maps of each view's own
+    """Portrait, landscape and square photos end to end: the prior stages (builtin segmenter trained on the photos
+    of one size, light network, W maps) and a run with packed pixels, labels, metal and W maps of each view's own
     size; the DARS sampler and renderer read each view at its size."""
+    from toolkit.priors import priors_light, priors_segment, priors_weights
+    from toolkit.segment import TrainSegmenterConfig
+
     scene = _mixed_sizes(tiny, tmp_path / "mixed")
     sc = load_scene(scene, "train")
     assert {(int(h), int(w)) for h, w in zip(sc.cameras.height, sc.cameras.width)} == {(32, 24), (20, 32), (32, 32)}
+    info = priors_segment(sc, None, "builtin", train_every=2, train_cfg=TrainSegmenterConfig(steps=3, crop=16))
+    assert len(info["train_views"]) == 7 and 0.0 <= info["miou_heldout"] <= 1.0  # the 32x24 ones of every 2nd
+    assert len(priors_light(sc, None)["per_image"]) == len(sc)
+    priors_weights(sc, None)
     train(scene, tmp_path / "r", _small(steps=30), progress_bar=False, log=lambda m: None)
     run = load_run(tmp_path / "r")
     assert run.weight_maps[0].shape == (32, 24) and run.weight_maps[1].shape == (20, 32)
@@ -278,6 +286,7 @@ def test_training_on_photos_of_different_sizes(tiny, tmp_path):
     assert out.rgb.shape[:2] == (20, 32) and bool(torch.isfinite(out.rgb).all())
     priors = json.loads((tmp_path / "r" / "config.json").read_text())["priors"]
     assert priors["labels"] == "provided" and priors["metal"] == "provided"
+    assert priors["weights"].startswith("loaded") and priors["light"].startswith("light network")
 
 
 def test_downscale_is_recorded_and_used_by_render_and_resume(tiny, tmp_path, capsys):

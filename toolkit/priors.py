@@ -294,7 +294,9 @@ def priors_segment(scene, out_dir=None, backend: str = "provided", model: str | 
             if train_every < 1:
                 raise SegmentationError(f"--train-every {train_every} must be >= 1")
             train_idx = list(range(0, len(scene), train_every))
-            imgs = scene.load_images(train_idx)
+            hw = [(int(h), int(w)) for h, w in zip(scene.cameras.height, scene.cameras.width)]
+            train_idx = [i for i in train_idx if hw[i] == hw[train_idx[0]]]
+            imgs = scene.load_images(train_idx)  # photos of one size (the first's) train it; it segments any size
             labs = torch.stack([scene.load_extra(i, "semantic") for i in train_idx])
             cfg = train_cfg or TrainSegmenterConfig(progress=True)
             res = train_segmenter(imgs, labs, cfg)
@@ -337,7 +339,7 @@ def priors_segment(scene, out_dir=None, backend: str = "provided", model: str | 
     from .scene import SEMANTIC_CLASSES
 
     def _report(p, g):
-        miou, per = mean_iou(torch.stack(p), torch.stack(g))
+        miou, per = mean_iou(torch.cat([x.reshape(-1) for x in p]), torch.cat([x.reshape(-1) for x in g]))
         return miou, {c: (None if v != v else v) for c, v in zip(SEMANTIC_CLASSES, per)}
 
     if gts:
@@ -384,11 +386,18 @@ def priors_light(scene, out_dir=None, weights: str | None = None, reduce: str = 
     out = prepare_out_dir(scene, "light", out_dir, ["light.json"], force)
     per, base_b = [], []
     for i in _progress(range(0, len(scene), batch_size), "light", (len(scene) + batch_size - 1) // batch_size):
-        imgs = torch.stack([scene.load_image(j) for j in range(i, min(i + batch_size, len(scene)))]).float()
-        if not scene.srgb:
-            imgs = linear_to_srgb(imgs.clamp(0.0, 1.0))
-        per.append(predict_sh(model, imgs, batch_size))
-        base_b.append(mean_colour_sh(imgs))
+        batch = [scene.load_image(j) for j in range(i, min(i + batch_size, len(scene)))]
+        for k0 in range(len(batch)):  # runs of photos of one size (portrait and landscape may alternate)
+            if k0 and batch[k0].shape == batch[k0 - 1].shape:
+                continue
+            k1 = k0 + 1
+            while k1 < len(batch) and batch[k1].shape == batch[k0].shape:
+                k1 += 1
+            imgs = torch.stack(batch[k0:k1]).float()
+            if not scene.srgb:
+                imgs = linear_to_srgb(imgs.clamp(0.0, 1.0))
+            per.append(predict_sh(model, imgs, batch_size))
+            base_b.append(mean_colour_sh(imgs))
     per_image = torch.cat(per)
     coeffs = aggregate_sh(per_image, reduce)
     meta = model.meta
