@@ -206,8 +206,13 @@ def test_ablation_several_seeds_markdown_and_layout(two_seeds, tmp_path):
     assert "Ground truth fed to training: metal masks, semantic labels" in md
     for target in re.findall(r"\]\(([^)\s]+)\)", md):
         assert (out / target).is_file(), f"broken link {target}"
-    from toolkit.report import ablation_text
+    from toolkit.ablation import WALL_CLOCK_WARNING
+    from toolkit.report import _ablation_markdown, ablation_text
 
+    minutes_doc = dict(doc, budget={"steps": 0, "minutes": 0.1, "warning": WALL_CLOCK_WARNING})
+    warned = _ablation_markdown(minutes_doc, {}, out)
+    assert "**Warning — wall-clock budget" in warned and "Full DARS-NeRF (seed 1) 4" in warned
+    assert "warning: wall-clock budget" in ablation_text(minutes_doc)
     assert "mean ± sample std" in ablation_text(doc) and "w/o semantic input vs full (paired)" in ablation_text(doc)
     # re-running reuses every run; another layout or seed setting is refused
     lines: list[str] = []
