@@ -30,7 +30,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--split", default=None, help="split to train on (default: train)")
     q.add_argument("--priors", help="directory holding the prior stages' outputs (default: <scene>/priors)")
     q.add_argument("--no-dars", action="store_true", help="ablation: uniform rays + hierarchical sampling")
-    q.add_argument("--no-semantics", action="store_true", help="ablation: no semantic guidance")
+    q.add_argument("--no-semantics", action="store_true",
+                   help="ablation: no semantic input (no L_semantic, no label edges in W; L_mat keeps its class terms)")
     q.add_argument("--fixed-light", action="store_true", help="ablation: l_env fixed at its initial value")
     q.add_argument("--no-mat-loss", action="store_true", help="ablation: no L_mat")
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")

@@ -70,11 +70,17 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         seg = priors_path(scene, "segment", priors_root)
         if not all((seg / f"{f.key}.png").is_file() for f in scene.frames):
             source = "none"
-    pri = read_priors(scene, priors_root, labels=source if cfg.semantics else None, weights=cfg.semantics,
+    # labels feed L_semantic and W's edge term E (cfg.semantics: the semantic input) and L_mat's class terms
+    # (cfg.mat_labels); read them when either uses them
+    use_mat = cfg.mat_labels and cfg.losses.mat > 0 and cfg.shading == "pbr"
+    pri = read_priors(scene, priors_root, labels=source if (cfg.semantics or use_mat) else None, weights=cfg.semantics,
                       colour=cfg.colour_correction != "off",
                       metal={"ground-truth": "scene", "predicted": "segment"}.get(cfg.labels, "none"))
     labels, metal = pri.labels, pri.metal
     priors: dict = {"labels": pri.labels_source, "metal": pri.metal_source}
+    if labels is not None:
+        priors["labels_used_by"] = ", ".join(u for u, on in (("L_semantic", cfg.semantics), ("W (E)", cfg.semantics),
+                                                             ("L_mat", use_mat)) if on)
     if cfg.labels == "ground-truth":
         priors["ground_truth_inputs"] = "labels and metal masks (--labels ground-truth)"
     if pri.weights is not None:
@@ -82,14 +88,15 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         priors["weights"] = pri.weights_source
     else:
         wcfg = WeightMapConfig()
+        w_labels = labels if cfg.semantics else None  # without the semantic input W has no label edges
         maps_w, maps_d = [], []
         for i in range(0, V, 16):
-            wm_i = weight_map(images[i:i + 16], None if labels is None else labels[i:i + 16].long(),
+            wm_i = weight_map(images[i:i + 16], None if w_labels is None else w_labels[i:i + 16].long(),
                               None if metal is None else metal[i:i + 16], wcfg)
             maps_w.append(wm_i.weights.float())
             maps_d.append(wm_i.distortion_loss.float())
         wm, dist = torch.cat(maps_w), torch.cat(maps_d)
-        priors["weights"] = "computed (G" + ("+E" if labels is not None else "") + ("+M" if metal is not None else "") + ")"
+        priors["weights"] = "computed (G" + ("+E" if w_labels is not None else "") + ("+M" if metal is not None else "") + ")"
     albedo_gt = None
     if cfg.albedo_supervision and scene.has_extra("albedo"):
         albedo_gt = torch.stack([scene.load_extra(i, "albedo") for i in range(V)])

@@ -263,7 +263,8 @@ def train_step(state: TrainState, data: TrainData) -> dict:
         tp = batch.target[batch.n_random:].reshape(P, s, s, 3).permute(0, 3, 1, 2)
         terms["ssim"] = ssim_loss(pp, tp, batch.patch_iw)
     if cfg.shading == "pbr" and lw.mat > 0:
-        terms["mat"] = material_loss(out.albedo, out.roughness, out.metallic, batch.labels, batch.metal,
+        terms["mat"] = material_loss(out.albedo, out.roughness, out.metallic,
+                                     batch.labels if cfg.mat_labels else None, batch.metal,
                                      batch.albedo_gt, batch.iw)
     if stage_b:
         terms["psnr_loss"] = psnr_loss(pred, batch.target, batch.iw)
