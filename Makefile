@@ -29,7 +29,7 @@ bench: install  ## run the benchmarks in bench/ (prints figures and ratios)
 	@for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 sample: install  ## re-render the bundled sample scene with Mitsuba 3 (overwrites samples/gallery)
-	$(PY) samples/render_gallery.py --out $(SAMPLE)
+	$(PY) samples/render_gallery.py --preset sample --out $(SAMPLE)
 
 clean:  ## remove demo outputs and caches (keeps .venv)
 	rm -rf $(OUT) .pytest_cache

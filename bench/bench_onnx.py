@@ -150,7 +150,9 @@ def main(argv=None) -> int:
                 r["field_ratio"] = ref["field_s"] / r["field_s"]
                 r["view_ratio"] = (ref["view_s"] / r["view_s"]) if r["view_s"] and ref["view_s"] else None
 
-    print(f"\nrun {args.run} (step {run.step}, {run.cfg.shading}, encoding {run.field.cfg.encoding}); export {exp}; "
+    space = (f"contracted to far radius {run.field.cfg.far_radius:g}" if run.field.cfg.contraction else "bounded")
+    print(f"\nrun {args.run} (step {run.step}, {run.cfg.shading}, encoding {run.field.cfg.encoding}, {space}); "
+          f"export {exp}; "
           f"view {args.view} {cam.width}x{cam.height}, sampler {sampler.n_coarse}+{sampler.n_fine}, DARS off; "
           f"{args.points} points per field query; torch {torch.__version__}")
     hdr = (f"{'thr':>3} {'backend':<26} {'prec':<5} {'MB':>6} {'field Mpt/s':>11} {'x torch':>8} "

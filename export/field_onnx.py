@@ -7,29 +7,35 @@
     DIR/segment.onnx      the scene's built-in segmenter (when ``priors/segment/segmenter.pt`` exists)
     DIR/light.onnx        the light-estimation network (when ``toolkit.lightnet`` and trained weights exist)
     DIR/occupancy.npz     the occupancy grid: ``mask_bits`` (np.packbits of the R^3 occupied cells, x-major),
-                          ``density`` float16 [R^3], ``resolution``, ``aabb`` [2, 3], ``step``, ``threshold``
+                          ``density`` float16 [R^3], ``resolution``, ``aabb`` [2, 3] (the scene box), ``step``,
+                          ``threshold``, ``contraction`` (the cells cover contracted space [-2, 2]^3, else the box)
+                          and ``far_radius`` (contracted: beyond it nothing is occupied)
     DIR/background.npz    ``mode`` (constant | learned | env), ``colour`` [3] or ``env_map`` [h, w, 3] linear
     DIR/metadata.json     conventions, l_env, box, sampler, files, graph signatures and the parity report
     DIR/field_fp16.onnx, DIR/field_int8.onnx   reduced-precision variants (optional; :mod:`export.onnx_precision`),
                           each measured: error per output and PSNR of the parity view vs fp32 and vs ground truth
 
 **Field graph.** :class:`FieldOnnxModule` calls :meth:`toolkit.field.DarsField.forward` and
-:func:`toolkit.shading.shade_pbr` — no re-implementation. The hash grid is forced onto
-:func:`toolkit.encoding.hash_grid_encode_torch` (``HashGrid.backend = "torch"``): gather-based trilinear
-interpolation with int64 Mul/Add/Mod (sum hash, no XOR) and ``Gather`` on the table — no ``GridSample``, no
-bitwise ops, so opset 17 suffices (the compiled C++ kernel is not traceable). The DFG table [32, 32, 2], the SH
+:func:`toolkit.shading.shade_pbr` — no re-implementation. For an unbounded run (``field.contraction``) the graph
+therefore contains the scene contraction before the hash grid and the σ rescaling (density per contracted length,
+σ / max(1, ‖n‖∞)², zero beyond ``far_radius``): it takes world points either way; ``metadata.json["space"]`` tells
+a renderer how to bound and stratify the rays (:mod:`toolkit.space`, mirrored in :mod:`export.infer`). The hash
+grid is forced onto :func:`toolkit.encoding.hash_grid_encode_torch` (``HashGrid.backend = "torch"``): gather-based
+trilinear interpolation with int64 Mul/Add/Mod (sum hash, no XOR) and ``Gather`` on the table — no ``GridSample``,
+no bitwise ops, so opset 17 suffices (the compiled C++ kernel is not traceable). The DFG table [32, 32, 2], the SH
 band tables and the SH constants become graph constants. The batch axis ``N`` is dynamic; ``sh`` [9, 3] is the
 global SH light ``l_env`` (SPEC convention) that conditions the lighting head, so a device can relight.
 
 **Parity** (fails loudly with :class:`export.onnx.OnnxParityError`): ONNX Runtime vs torch per output on random
-points in the box and on *real* inputs (the exact samples the run's render sampler takes along the rays of a
-test view), max abs error ≤ ``tol`` (1e-4; for ``density``, which is in 1/m and reaches 1e3–1e4 on opaque
-surfaces, the bound is ``tol · max(1, |σ|)``, i.e. 1e-4 relative above 1, since float32 resolves only ~1e-7
-relative; both figures are reported, and on the sample runs even the raw density error is ~2e-5); then one test
-view is rendered by :func:`export.infer.render_view` (numpy + ONNX Runtime, no torch) and by
-:meth:`toolkit.train.run.Run.render` and their PSNRs against the ground truth must agree within ``psnr_tol``
-(0.05 dB). DARS along-ray density is a render-time prior from the training W maps, not part of the device path:
-the torch reference for the check has it disabled; with it on, its PSNR is reported as well.
+points in the box (contracted runs: and beyond it, out past the far radius) and on *real* inputs (the exact
+samples the run's render sampler takes along the rays of a test view), max abs error ≤ ``tol`` (1e-4; for
+``density``, which is in 1/m and reaches 1e3–1e4 on opaque surfaces, the bound is ``tol · max(1, |σ|)``, i.e. 1e-4
+relative above 1, since float32 resolves only ~1e-7 relative; both figures are reported, and on the sample runs
+even the raw density error is ~2e-5); then one test view is rendered by :func:`export.infer.render_view` (numpy +
+ONNX Runtime, no torch) and by :meth:`toolkit.train.run.Run.render` and their PSNRs against the ground truth must
+agree within ``psnr_tol`` (0.05 dB). DARS along-ray density is a render-time prior from the training W maps, not
+part of the device path: the torch reference for the check has it disabled; with it on, its PSNR is reported as
+well.
 
 Example:
     >>> rep = export_onnx_models("runs/gallery", "out/onnx", precision=("fp32", "fp16", "int8"))  # doctest: +SKIP
@@ -62,7 +68,7 @@ from .onnx_precision import make_fp16_variant, make_int8_variant
 from . import infer as _infer
 
 __all__ = ["FieldExportConfig", "OnnxModelsReport", "FieldOnnxModule", "export_field_onnx", "export_onnx_models",
-           "field_io_signature", "PBR_OUTPUTS", "RADIANCE_OUTPUTS", "PRECISIONS"]
+           "field_io_signature", "space_metadata", "PBR_OUTPUTS", "RADIANCE_OUTPUTS", "PRECISIONS"]
 
 PBR_OUTPUTS = ("density", "normal", "albedo", "roughness", "metallic", "semantic_logits", "light", "colour",
                "diffuse", "specular")
@@ -89,7 +95,8 @@ class FieldExportConfig:
     psnr_tol: float = 0.05
     """Largest accepted |PSNR(onnx render) − PSNR(torch render)| in dB on the parity view."""
     n_random: int = 4096
-    """Random points (uniform in the box grown by 5 %, random unit view directions) for the random check."""
+    """Random points (uniform in the box grown by 5 %, random unit view directions) for the random check; for a
+    contracted field half of them lie beyond the box, out past the far radius."""
     n_real_rays: int = 256
     """Test-view rays whose render samples are the real inputs."""
     parity_split: str = "test"
@@ -215,12 +222,22 @@ def _dars_version() -> str:
         return "unknown"
 
 
-def _random_inputs(aabb: torch.Tensor, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _random_inputs(aabb: torch.Tensor, n: int, seed: int, far_radius: float | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random points [n, 3] uniform in the box grown by 5 % and random unit directions [n, 3]. With ``far_radius``
+    (a contracted field) the second half of the points lies beyond the box instead: box radius ‖n‖∞ log-uniform
+    in [1, 1.25 · far_radius] (the contracted shell, and some beyond the far radius, where σ must be 0)."""
     g = torch.Generator().manual_seed(seed)
     lo, hi = aabb[0].float(), aabb[1].float()
     pad = 0.05 * (hi - lo)
     pts = (lo - pad) + torch.rand(n, 3, generator=g) * (hi - lo + 2 * pad)
     dirs = nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    if far_radius is not None and n > 1:
+        m = n // 2
+        cube = torch.rand(m, 3, generator=g) * 2 - 1
+        cube = cube / cube.abs().amax(-1, keepdim=True).clamp_min(1e-6)  # on the unit cube's surface (‖·‖∞ = 1)
+        radius = torch.exp(torch.rand(m, 1, generator=g) * math.log(1.25 * far_radius))
+        pts[n - m:] = 0.5 * (lo + hi) + cube * radius * 0.5 * (hi - lo)
     return pts, dirs
 
 
@@ -266,7 +283,7 @@ def export_field_onnx(fld: DarsField, path: str | os.PathLike, l_env: torch.Tens
     """
     module = FieldOnnxModule(fld, shading).eval()
     ins, outs = field_io_signature(shading, fld.cfg.n_classes)
-    pts, dirs = _random_inputs(fld.aabb.detach().cpu(), 64, seed=1)
+    pts, dirs = _random_inputs(fld.aabb.detach().cpu(), 64, seed=1, far_radius=_far_radius(fld))
     example = (pts, dirs)
     if shading == "pbr":
         sh = torch.zeros(9, 3) if l_env is None else torch.as_tensor(l_env, dtype=torch.float32).reshape(9, 3).cpu()
@@ -279,6 +296,33 @@ def export_field_onnx(fld: DarsField, path: str | os.PathLike, l_env: torch.Tens
                            random_batch=0)
 
 
+def _far_radius(fld: DarsField) -> float | None:
+    """The field's far radius when it is contracted (unbounded), else None."""
+    return float(fld.cfg.far_radius) if fld.cfg.contraction else None
+
+
+def space_metadata(fld: DarsField) -> dict:
+    """``metadata.json["space"]``: what a renderer needs to bound and stratify rays like :mod:`toolkit.space`.
+
+    ``aabb`` [2, 3] the scene box (metres); ``contraction`` (unbounded: rays run to the far-radius box and are
+    stratified uniformly in contracted arc length); ``far_radius`` (box half-sizes, L∞); ``edge_candidates`` (the
+    arc-length table of :func:`toolkit.space.contracted_edges`); ``grid_aabb`` the box the hash and occupancy grids
+    cover in grid coordinates ([-2, 2]^3 contracted, else the scene box).
+    """
+    import inspect
+
+    from toolkit.space import contracted_edges
+
+    sp = fld.space
+    k = inspect.signature(contracted_edges).parameters["n_candidates"].default
+    return {"aabb": sp.aabb.detach().cpu().float().tolist(), "contraction": bool(sp.contraction),
+            "far_radius": float(sp.far_radius), "edge_candidates": int(k),
+            "grid_aabb": sp.grid_aabb.detach().cpu().float().tolist(),
+            "contract": "n = (x - centre) / half; c = n if max|n| <= 1 else (2 - 1/max|n|) n / max|n|",
+            "density": "per metre; beyond the box already divided by max(1, max|n|)^2 in the graph, 0 beyond "
+                       "far_radius"}
+
+
 def _max_density(module: FieldOnnxModule, example) -> float:
     with torch.no_grad():
         return float(module(*example)[0].abs().max().clamp_min(1.0))
@@ -287,11 +331,16 @@ def _max_density(module: FieldOnnxModule, example) -> float:
 # ============================================================================ helpers for the bundle
 def _write_occupancy(path: Path, occ) -> None:
     mask = occ.mask.detach().cpu().numpy().astype(bool)
+    contraction = bool(getattr(occ, "contraction", False))
+    layout = ("index = i*R*R + j*R + k, ijk = floor((contract(x, aabb) + 2) / 4 * R); occupied only where "
+              "max|(x - centre) / half| <= far_radius" if contraction else
+              "index = i*R*R + j*R + k, ijk = floor((x - aabb[0]) / (aabb[1] - aabb[0]) * R)")
     np.savez_compressed(path, mask_bits=np.packbits(mask), resolution=np.int64(occ.resolution),
                         aabb=occ.aabb.detach().cpu().numpy().astype(np.float32),
                         density=np.minimum(occ.density.detach().cpu().numpy(), 6e4).astype(np.float16),
                         step=np.float32(occ.step), threshold=np.float32(occ.threshold),
-                        layout=np.array("index = i*R*R + j*R + k, ijk = floor((x - aabb[0]) / (aabb[1] - aabb[0]) * R)"))
+                        contraction=np.bool_(contraction),
+                        far_radius=np.float32(getattr(occ, "far_radius", 64.0)), layout=np.array(layout))
 
 
 def _write_background(path: Path, bg) -> dict:
@@ -408,8 +457,8 @@ def _real_inputs(run, sc, index: int, n_rays: int) -> dict[str, torch.Tensor]:
     from toolkit.pipeline import RenderInputs, render_rays
     from toolkit.scene import generate_rays
 
-    rays = generate_rays(sc.cameras, [index], aabb=run.train_scene.aabb, near=run.train_scene.near,
-                         far=run.train_scene.far)
+    bounds = run.field.space if run.field.cfg.contraction else run.train_scene.aabb  # as render_image
+    rays = generate_rays(sc.cameras, [index], aabb=bounds, near=run.train_scene.near, far=run.train_scene.far)
     hit = torch.nonzero(rays.far > rays.near).squeeze(-1)
     if hit.numel() == 0:
         hit = torch.arange(len(rays))
@@ -541,6 +590,8 @@ def export_onnx_models(run_dir: str | os.PathLike, out_dir: str | os.PathLike, o
         "dars.sh_constants": json.dumps([SH_C0, SH_C1, SH_C2, SH_C3, SH_C4]),
         "dars.l_env": json.dumps(l_env.tolist()),
         "dars.aabb": json.dumps(aabb.tolist()),
+        "dars.contraction": json.dumps(bool(fld.cfg.contraction)),
+        "dars.far_radius": repr(float(fld.cfg.far_radius)),
         "dars.density_scale": repr(fld.density_scale),
         "dars.density_units": "1/metre (alpha = 1 - exp(-density * delta_t))",
         "dars.inputs": json.dumps(ins),
@@ -556,7 +607,7 @@ def export_onnx_models(run_dir: str | os.PathLike, out_dir: str | os.PathLike, o
     sess = _infer.make_session(out / "field.onnx", threads)
     module = FieldOnnxModule(fld, shading).eval()
     # ---------------------------------------------------------------- random + real inputs
-    pts, dirs = _random_inputs(aabb, cfg.n_random, seed=0)
+    pts, dirs = _random_inputs(aabb, cfg.n_random, seed=0, far_radius=_far_radius(fld))
     rnd = {"points": pts, "view_dirs": dirs}
     real = _real_inputs(run, sc, cfg.parity_index, cfg.n_real_rays)
     if shading == "pbr":
@@ -593,7 +644,7 @@ def export_onnx_models(run_dir: str | os.PathLike, out_dir: str | os.PathLike, o
         "run": str(run_dir.resolve()), "scene": run.scene_path, "step": run.step, "shading": shading,
         "srgb": bool(run.train_scene.srgb), "conventions": CONVENTIONS,
         "l_env": l_env.tolist(), "aabb": aabb.tolist(), "near": run.train_scene.near, "far": run.train_scene.far,
-        "near_min": 0.05, "density_scale": fld.density_scale,
+        "near_min": 0.05, "density_scale": fld.density_scale, "space": space_metadata(fld),
         "render_sampler": {"n_coarse": rs_cfg.n_coarse, "n_fine": rs_cfg.n_fine, "perturb": False,
                            "dars_in_run": bool(rs_cfg.dars), "dars_on_device": False,
                            "note": "the device renderer uses the hierarchical proposal only; DARS along-ray "
@@ -602,7 +653,8 @@ def export_onnx_models(run_dir: str | os.PathLike, out_dir: str | os.PathLike, o
         "field": {"file": "field.onnx", "inputs": ins, "outputs": outs_sig,
                   "encoding": fld.cfg.encoding, "hash_grid": meta_props["dars.hash_grid"]},
         "occupancy": {"file": "occupancy.npz", "resolution": run.occupancy.resolution,
-                      "occupied_fraction": run.occupancy.occupancy_fraction()},
+                      "occupied_fraction": run.occupancy.occupancy_fraction(),
+                      "contraction": bool(run.occupancy.contraction), "far_radius": float(run.occupancy.far_radius)},
         "background": {"file": "background.npz", **bg_info},
         "semantic_classes": list(_infer.SEMANTIC_CLASSES),
     }

@@ -491,17 +491,36 @@ def load_glb(path: str | Path) -> GltfAsset:
     triangle glTF without sparse accessors — into numpy arrays, rotating back to world coordinates.
 
     Raises:
-        SceneError: missing file, not glTF 2.0, or unsupported content.
+        SceneError: missing file, not glTF 2.0, truncated or damaged, or unsupported content (naming the file).
     """
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"glTF file not found: {path}")
+    try:
+        return _load_glb(path)
+    except SceneError as e:
+        if str(path) in str(e):
+            raise
+        raise SceneError(f"{path}: {e}; re-export it (`dars export-asset RUN --out DIR`)") from e
+    except (struct.error, KeyError, IndexError, ValueError, TypeError, AttributeError, OSError, EOFError) as e:
+        size = path.stat().st_size
+        raise SceneError(f"{path} is truncated or not a valid glTF file ({size} bytes; {type(e).__name__}: "
+                         f"{str(e)[:160]}); re-export it (`dars export-asset RUN --out DIR`) or copy it again") from e
+
+
+def _load_glb(path: Path) -> GltfAsset:
     raw = path.read_bytes()
+    if not raw:
+        raise SceneError(f"{path} is empty (0 bytes), not a glTF file; re-export it "
+                         "(`dars export-asset RUN --out DIR`) or copy it again")
     bin_chunk = b""
     if raw[:4] == b"glTF":
         _, version, length = struct.unpack_from("<4sII", raw, 0)
         if version != 2:
             raise SceneError(f"{path}: GLB version {version}, expected 2")
+        if length > len(raw):
+            raise SceneError(f"{path} is truncated: its header says {length} bytes but the file has {len(raw)}; "
+                             "re-export it (`dars export-asset RUN --out DIR`) or copy it again")
         off, root = 12, None
         while off < length:
             n, kind = struct.unpack_from("<I4s", raw, off)

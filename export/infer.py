@@ -10,14 +10,24 @@ The renderer is the algorithm of :func:`toolkit.pipeline.render_image` with the 
 ``deferred=False``, re-implemented in numpy with the same float32 arithmetic:
 
 1. rays through pixel centres ``(u + 0.5, v + 0.5)`` (OpenGL camera: x right, y up, looking down −z), clipped
-   to the scene box by a slab test (entry clamped to 0.05 m) and to the scene's near/far when it has them;
-2. ``n_coarse`` evenly spaced strata in [near, far] (``perturb=False``), their midpoints kept where the
-   occupancy grid (``occupancy.npz``) is occupied;
+   by a slab test (entry clamped to 0.05 m) to the scene box — or, for a *contracted* (unbounded) field, to the
+   box grown ``far_radius`` times about its centre, where the field ends (:mod:`toolkit.space`) — and to the
+   scene's near/far when it has them;
+2. ``n_coarse`` strata in [near, far] (``perturb=False``): evenly spaced in metres (bounded), or equal in
+   *contracted* arc length (:func:`contracted_edges`, the mirror of :func:`toolkit.space.contracted_edges`);
+   their midpoints kept where the occupancy grid (``occupancy.npz``) is occupied — a grid over the scene box, or
+   over contracted space [−2, 2]³ (points are contracted first; beyond the far radius is empty);
 3. the field at the kept coarse samples; their compositing weights form the hierarchical proposal, from which
    ``n_fine`` samples per ray are drawn by deterministic inverse-CDF sampling (CDF slice centres);
-4. the union, sorted along each ray with Voronoi intervals (at most one coarse step), composited as packed
-   samples: ``α = 1 − exp(−σ δ)``, ``w = T α``; per-sample PBR-shaded colour (the graph's ``colour``) summed
-   with ``w``, plus ``(1 − opacity)`` × the background (``background.npz``: constant colour or lat-long map).
+4. the union, sorted along each ray with Voronoi intervals (at most one coarse step; contracted: at most the
+   sample's own stratum, whose lengths differ), composited as packed samples: ``α = 1 − exp(−σ δ)``,
+   ``w = T α``; per-sample PBR-shaded colour (the graph's ``colour``) summed with ``w``, plus ``(1 − opacity)``
+   × the background (``background.npz``: constant colour or lat-long map).
+
+The field graph itself contracts its input points and rescales σ (density per contracted length beyond the
+box, zero beyond the far radius), so ``field.onnx`` is queried with world points in both cases. The space a
+bundle lives in is ``metadata.json["space"]`` (``aabb``, ``contraction``, ``far_radius``, ``edge_candidates``);
+a bundle without it (exported before unbounded scenes) is bounded.
 
 DARS along-ray density (SPEC stage 7 part 3) needs the training views' W maps and is a training/render-time
 prior: it is *not* part of the device path, which uses the hierarchical proposal only (the export report gives
@@ -42,7 +52,8 @@ import numpy as np
 
 from toolkit.pinhole import PinholeCamera
 
-__all__ = ["InferError", "PinholeCamera", "FieldModel", "RenderSettings", "load_model", "render_view",
+__all__ = ["InferError", "PinholeCamera", "FieldModel", "RenderSettings", "SceneSpace", "load_model", "render_view",
+           "render_rays", "generate_camera_rays", "contract", "box_radius", "contracted_edges",
            "camera_from_transforms", "read_photo", "infer_segment", "infer_light", "FIELD_FILES", "REQUIRED_FILES"]
 
 FIELD_FILES = {"fp32": "field.onnx", "fp16": "field_fp16.onnx", "int8": "field_int8.onnx"}
@@ -54,6 +65,134 @@ SEMANTIC_CLASSES = ("painting", "frame", "display", "base", "wall", "floor", "ot
 
 class InferError(ValueError):
     """Bad input to the device inference path (missing files, wrong shapes); the message says what to do."""
+
+
+# ====================================================================== space (numpy mirror of toolkit.space)
+@dataclass(frozen=True)
+class SceneSpace:
+    """The space an exported field lives in (numpy mirror of :class:`toolkit.space.SceneSpace`).
+
+    Attributes:
+        aabb: float32 [2, 3] the scene box, metres.
+        contraction: True: unbounded (contracted beyond the box, the field ends at ``far_radius``); False: only
+            the box exists.
+        far_radius: ‖n‖∞ (box half-sizes, n = (x − centre) / half-size) at which rays and the field end.
+        edge_candidates: resolution of the contracted arc-length table of :func:`contracted_edges`.
+    """
+
+    aabb: np.ndarray
+    contraction: bool = False
+    far_radius: float = 64.0
+    edge_candidates: int = 96
+
+    @classmethod
+    def from_metadata(cls, metadata: dict) -> "SceneSpace":
+        """From ``metadata.json`` (its ``space``; a bundle without one is bounded by its ``aabb``)."""
+        sp = metadata.get("space")
+        if sp is None:
+            return cls(np.asarray(metadata["aabb"], np.float32).reshape(2, 3))
+        return cls(np.asarray(sp["aabb"], np.float32).reshape(2, 3), bool(sp["contraction"]),
+                   float(sp["far_radius"]), int(sp.get("edge_candidates", 96)))
+
+    @property
+    def ray_box(self) -> np.ndarray:
+        """float32 [2, 3] the box rays are clipped to: the scene box, or (contracted) the far-radius box."""
+        aabb = np.asarray(self.aabb, np.float32)
+        if not self.contraction:
+            return aabb
+        c, h = np.float32(0.5) * (aabb[0] + aabb[1]), np.float32(0.5) * (aabb[1] - aabb[0])
+        fr = np.float32(self.far_radius)
+        return np.stack([c - fr * h, c + fr * h]).astype(np.float32)
+
+
+def box_radius(points: np.ndarray, aabb: np.ndarray) -> np.ndarray:
+    """float32 [N] ‖n‖∞ of world points [N, 3] normalised to the box ``aabb`` [2, 3] (≤ 1 inside the box;
+    :func:`toolkit.space.box_radius`)."""
+    f32 = np.float32
+    centre = f32(0.5) * (aabb[0] + aabb[1])
+    half = f32(0.5) * (aabb[1] - aabb[0])
+    return np.abs((points - centre) / half).max(-1)
+
+
+def contract(points: np.ndarray, aabb: np.ndarray) -> np.ndarray:
+    """Scene contraction of world points [..., 3] into [-2, 2]³ (float32; :func:`toolkit.space.contract`)."""
+    f32 = np.float32
+    centre = f32(0.5) * (aabb[0] + aabb[1])
+    half = f32(0.5) * (aabb[1] - aabb[0])
+    n = (points - centre) / half
+    r = np.abs(n).max(-1, keepdims=True)
+    rs = np.maximum(r, f32(1.0))
+    return np.where(r > 1.0, (f32(2.0) - f32(1.0) / rs) * n / rs, n).astype(f32)
+
+
+def _pow_f32(base: np.ndarray, exponent: np.ndarray) -> np.ndarray:
+    """float32 ``base ** exponent`` rounded from float64 (torch's vectorised float32 pow is within 1 ulp of it)."""
+    return (base.astype(np.float64) ** exponent.astype(np.float64)).astype(np.float32)
+
+
+def _norm3(v: np.ndarray) -> np.ndarray:
+    """float32 ‖v‖ over a last axis of 3 in the order torch's CPU norm kernel takes (fused multiply-adds, emulated
+    in float64: the products are exact there)."""
+    f64 = np.float64
+    acc = np.zeros(v.shape[:-1], np.float32)
+    for i in range(v.shape[-1]):
+        x = v[..., i].astype(f64)
+        acc = (x * x + acc.astype(f64)).astype(np.float32)
+    return np.sqrt(acc)
+
+
+def contracted_edges(origins: np.ndarray, directions: np.ndarray, near: np.ndarray, far: np.ndarray,
+                     aabb: np.ndarray, n: int, n_candidates: int = 96) -> np.ndarray:
+    """float32 [R, n + 1] stratum edges uniform in contracted arc length (mirror of
+    :func:`toolkit.space.contracted_edges` with ``perturb=False``).
+
+    The contracted path length of each ray is tabulated at ``n_candidates`` + 1 depths spaced geometrically from
+    ``near`` to ``far``; the ``n`` strata are its equal parts (linear interpolation in the table). Rays with
+    ``far <= near`` get zero-length strata. Same float32 operations as torch, but not bit-exact: torch's
+    vectorised float32 ``pow`` (SLEEF, within 1 ulp) and ``linspace`` round a few table depths differently, so
+    edges agree to ~1e-6 relative (most of them exactly).
+
+    Args:
+        origins, directions: float32 [R, 3] rays (unit directions).
+        near, far: float32 [R] bounds (metres).
+        aabb: float32 [2, 3] scene box.
+        n: strata per ray.
+        n_candidates: resolution of the arc-length table (the exporting toolkit's, ``metadata["space"]``).
+    """
+    f32 = np.float32
+    R, K = origins.shape[0], int(n_candidates)
+    aabb = np.asarray(aabb, f32)
+    far = np.maximum(far, near)
+    lo = np.maximum(near, f32(1e-4))
+    ratio = np.maximum(np.maximum(far, f32(1e-4)) / lo, f32(1.0))
+    t = lo[:, None] * _pow_f32(ratio[:, None], _torch_linspace01(K)[None])  # [R, K+1] geometric
+    t = np.where(far[:, None] > near[:, None], t, near[:, None]).astype(f32)
+    pts = origins[:, None, :] + t[..., None] * directions[:, None, :]
+    c = contract(pts, aabb)
+    seg = _norm3(c[:, 1:] - c[:, :-1])
+    L = np.concatenate([np.zeros((R, 1), f32), np.cumsum(seg.astype(np.float64), -1).astype(f32)], -1)
+    total = np.maximum(L[:, -1:], f32(1e-12))
+    target = _torch_linspace01(n)[None] * total  # [R, n+1]
+    k = np.zeros(target.shape, np.int64)  # searchsorted(L, target, right=True)
+    for j in range(K + 1):
+        k += L[:, j:j + 1] <= target
+    k = np.clip(k, 1, K) - 1
+    L0, L1 = np.take_along_axis(L, k, 1), np.take_along_axis(L, k + 1, 1)
+    t0, t1 = np.take_along_axis(t, k, 1), np.take_along_axis(t, k + 1, 1)
+    frac = np.clip((target - L0) / np.maximum(L1 - L0, f32(1e-12)), f32(0.0), f32(1.0))
+    edges = t0 + frac * (t1 - t0)
+    edges = np.minimum(np.maximum(edges, near[:, None]), far[:, None])
+    return np.maximum.accumulate(edges, axis=-1).astype(f32)
+
+
+def stratified_edges(origins: np.ndarray, directions: np.ndarray, near: np.ndarray, far: np.ndarray,
+                     space: SceneSpace, n: int) -> np.ndarray:
+    """float32 [R, n + 1] deterministic stratum edges (mirror of :func:`toolkit.sampling.stratified_edges` with
+    ``perturb=False``): equal in contracted arc length for a contracted space, else equal in metres."""
+    if space.contraction:
+        return contracted_edges(origins, directions, near, far, space.aabb, n, space.edge_candidates)
+    far_m = np.maximum(far, near)
+    return (near[:, None] + (far_m - near)[:, None] * _torch_linspace01(n)[None]).astype(np.float32)
 
 
 # ====================================================================== loading
@@ -83,8 +222,10 @@ class FieldModel:
         shading: ``pbr`` (decomposed) or ``radiance`` (standard NeRF run).
         sh: float32 [9, 3] the run's SH light ``l_env`` (SPEC convention), the default ``sh`` input.
         aabb: float32 [2, 3] scene box.
+        space: the :class:`SceneSpace` (box, contraction, far radius) the field and its rays live in.
         occupancy_mask: bool [R^3] occupied cells (x-major: index = i R² + j R + k).
         occupancy_resolution: R.
+        occupancy_contraction: the grid covers contracted space [-2, 2]³ (else the box ``occupancy_aabb``).
         background: ``{"mode": ..., "colour": [3] or "env_map": [h, w, 3]}`` linear radiance.
     """
 
@@ -96,9 +237,12 @@ class FieldModel:
         self.shading = metadata["shading"]
         self.sh = np.asarray(metadata["l_env"], np.float32).reshape(9, 3)
         self.aabb = np.asarray(metadata["aabb"], np.float32).reshape(2, 3)
+        self.space = SceneSpace.from_metadata(metadata)
         self.occupancy_resolution = int(occupancy["resolution"])
         self.occupancy_aabb = np.asarray(occupancy["aabb"], np.float32).reshape(2, 3)
         self.occupancy_mask = occupancy["mask"]
+        self.occupancy_contraction = bool(occupancy.get("contraction", False))
+        self.occupancy_far_radius = float(occupancy.get("far_radius", self.space.far_radius))
         self.background = background
         self.input_names = [i.name for i in session.get_inputs()]
         self.output_names = [o.name for o in session.get_outputs()]
@@ -142,10 +286,18 @@ class FieldModel:
 
     # ------------------------------------------------------------------ occupancy and background
     def occupied(self, points: np.ndarray) -> np.ndarray:
-        """bool [N]: inside the box and in an occupied cell (as :meth:`toolkit.sampling.OccupancyGrid.occupied`)."""
-        lo, hi = self.occupancy_aabb[0], self.occupancy_aabb[1]
-        u = (points - lo) / (hi - lo)
-        inside = ((u >= 0) & (u <= 1)).all(-1)
+        """bool [N]: inside the modelled space and in an occupied cell (as
+        :meth:`toolkit.sampling.OccupancyGrid.occupied`): bounded, the grid spans the box; contracted, points are
+        contracted first, the grid spans [-2, 2]³ and beyond the far radius is empty."""
+        points = np.asarray(points, np.float32)
+        if self.occupancy_contraction:
+            lo, hi = np.full(3, -2.0, np.float32), np.full(3, 2.0, np.float32)
+            u = (contract(points, self.occupancy_aabb) - lo) / (hi - lo)
+            inside = box_radius(points, self.occupancy_aabb) <= self.occupancy_far_radius
+        else:
+            lo, hi = self.occupancy_aabb[0], self.occupancy_aabb[1]
+            u = (points - lo) / (hi - lo)
+            inside = ((u >= 0) & (u <= 1)).all(-1)
         r = self.occupancy_resolution
         ijk = np.clip((u * np.float32(r)).astype(np.int64), 0, r - 1)
         return self.occupancy_mask[ijk[:, 0] * r * r + ijk[:, 1] * r + ijk[:, 2]] & inside
@@ -216,24 +368,42 @@ def load_model(path: str | os.PathLike, precision: str = "fp32", threads: int | 
     if not (path / FIELD_FILES[precision]).is_file():
         raise InferError(f"{path / FIELD_FILES[precision]} not found: export it with "
                          f"`dars export-onnx RUN --out {path} --precision fp32,{precision}`")
+    current = "metadata.json"  # the file being read, named when it is damaged
     try:
         metadata = json.loads((path / "metadata.json").read_text())
-        occ = np.load(path / "occupancy.npz")
+        if not isinstance(metadata, dict):
+            raise ValueError(f"it holds a {type(metadata).__name__}, not an object")
+        current = "occupancy.npz"
+        occ = _load_npz(path / "occupancy.npz")
         r = int(occ["resolution"])
         occupancy = {"resolution": r, "aabb": occ["aabb"],
-                     "mask": np.unpackbits(occ["mask_bits"], count=r ** 3).astype(bool)}
-        b = np.load(path / "background.npz")
+                     "mask": np.unpackbits(occ["mask_bits"], count=r ** 3).astype(bool),
+                     "contraction": bool(occ["contraction"]) if "contraction" in occ.files else False}
+        if "far_radius" in occ.files:
+            occupancy["far_radius"] = float(occ["far_radius"])
+        current = "background.npz"
+        b = _load_npz(path / "background.npz")
         mode = str(b["mode"])
         background = {"mode": mode}
         if mode == "env":
             background["env_map"] = np.asarray(b["env_map"], np.float32)
         else:
             background["colour"] = np.asarray(b["colour"], np.float32).reshape(3)
-    except (OSError, KeyError, ValueError) as e:
-        raise InferError(f"{path}: could not read the export ({type(e).__name__}: {e}); "
-                         "re-run `dars export-onnx RUN --out DIR`") from e
+    except Exception as e:  # noqa: BLE001 - json, zipfile, zlib and numpy raise many types for a damaged file
+        raise InferError(f"{path / current} is truncated or corrupt ({type(e).__name__}: {str(e)[:160]}); "
+                         f"re-run `dars export-onnx RUN --out {path}`") from e
     session = make_session(path / FIELD_FILES[precision], threads)
     return FieldModel(path, metadata, session, precision, occupancy, background)
+
+
+def _load_npz(path: Path):
+    """``np.load`` of an ``.npz`` that says "not an .npz archive" for a truncated or foreign file (numpy would try
+    to read it as pickled data)."""
+    import zipfile
+
+    if not zipfile.is_zipfile(path):
+        raise ValueError("not an .npz archive: truncated, or another kind of file")
+    return np.load(path, allow_pickle=False)
 
 
 # ====================================================================== cameras and rays
@@ -249,7 +419,12 @@ def camera_from_transforms(path: str | os.PathLike, index: int) -> PinholeCamera
     path = Path(path)
     if not path.is_file():
         raise InferError(f"transforms file not found: {path}")
-    meta = json.loads(path.read_text())
+    try:
+        meta = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as e:
+        raise InferError(f"{path} is not a valid transforms JSON ({e})") from e
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames", []), list):
+        raise InferError(f"{path}: expected a JSON object with a 'frames' list")
     frames = meta.get("frames", [])
     if not 0 <= index < len(frames):
         raise InferError(f"{path}: frame index {index} out of range (the file has {len(frames)} frames)")
@@ -293,9 +468,16 @@ def _intersect_aabb(o: np.ndarray, d: np.ndarray, aabb: np.ndarray, near_min: fl
     return near, far
 
 
-def generate_camera_rays(camera: PinholeCamera, aabb: np.ndarray, near: float | None = None,
+def generate_camera_rays(camera: PinholeCamera, aabb, near: float | None = None,
                          far: float | None = None, near_min: float = 0.05) -> dict[str, np.ndarray]:
     """Every pixel's ray, row-major (numpy mirror of :func:`toolkit.scene.generate_rays`).
+
+    Args:
+        camera: the view.
+        aabb: float [2, 3] scene box the rays are clipped to, or a :class:`SceneSpace` (contracted: the rays run
+            to its far radius).
+        near, far: the scene's bounds (metres), applied on top of the box when both are given.
+        near_min: entry clamp for rays starting inside the box.
 
     Returns:
         dict of float32 ``origins`` [R, 3], ``directions`` [R, 3] (unit), ``near``, ``far``, ``z_scale`` [R].
@@ -312,6 +494,12 @@ def generate_camera_rays(camera: PinholeCamera, aabb: np.ndarray, near: float | 
     norm = np.sqrt((d_world * d_world).sum(-1, keepdims=True))
     directions = d_world / norm
     origins = np.broadcast_to(c2w[:3, 3], directions.shape).copy()
+    if isinstance(aabb, SceneSpace):
+        n, fa = _intersect_aabb(origins, directions, aabb.ray_box, near_min)
+        if near is not None and far is not None:
+            n, fa = np.maximum(n, np.full_like(n, near)), np.minimum(fa, np.full_like(fa, far))
+        return {"origins": origins, "directions": directions.astype(f32), "near": n.astype(f32),
+                "far": fa.astype(f32), "z_scale": (f32(1.0) / norm[:, 0]).astype(f32)}
     aabb = np.asarray(aabb, f32)
     if near is not None and far is not None:
         bn, bf = _intersect_aabb(origins, directions, aabb, near_min)
@@ -362,18 +550,23 @@ def _accumulate(weights: np.ndarray, values: np.ndarray | None, ray_indices: np.
     return out
 
 
-def _sample_fine(edges: np.ndarray, pdf: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Deterministic inverse-CDF samples (mirror of :func:`toolkit.sampling.sample_fine` with ``perturb=False``)."""
+def _sample_fine(edges: np.ndarray, pdf: np.ndarray, counts: np.ndarray, return_strata: bool = False):
+    """Deterministic inverse-CDF samples (mirror of :func:`toolkit.sampling.sample_fine` with ``perturb=False``).
+
+    Returns:
+        (t [S_f], ray_indices [S_f]), and the stratum index [S_f] of each sample with ``return_strata``.
+    """
     R, n = pdf.shape
     total = int(counts.sum())
     if total == 0:
-        return np.zeros(0, np.float32), np.zeros(0, np.int64)
+        z, e = np.zeros(0, np.float32), np.zeros(0, np.int64)
+        return (z, e, e) if return_strata else (z, e)
     f32 = np.float32
     valid = (edges[:, 1:] > edges[:, :-1]).astype(f32)
     p = pdf * valid
     s = p.sum(-1, keepdims=True)
     p = np.where(s > 1e-12, p / np.maximum(s, f32(1e-12)), valid / np.maximum(valid.sum(-1, keepdims=True), f32(1.0)))
-    cdf = np.concatenate([np.zeros((R, 1), f32), np.cumsum(p, -1, dtype=f32)], -1)
+    cdf = np.concatenate([np.zeros((R, 1), f32), np.cumsum(p.astype(np.float64), -1).astype(f32)], -1)  # as torch
     cdf[:, -1] = 1.0
     ray_idx = np.repeat(np.arange(R), counts)
     j = np.arange(total) - _ray_starts(ray_idx, R)[ray_idx]
@@ -385,11 +578,13 @@ def _sample_fine(edges: np.ndarray, pdf: np.ndarray, counts: np.ndarray) -> tupl
     e = edges[ray_idx]
     e0, e1 = e[ar, k], e[ar, k + 1]
     frac = np.clip((u - c0) / np.maximum(c1 - c0, f32(1e-12)), f32(0.0), f32(1.0))
-    return (e0 + frac * (e1 - e0)).astype(f32), ray_idx
+    t = (e0 + frac * (e1 - e0)).astype(f32)
+    return (t, ray_idx, k) if return_strata else (t, ray_idx)
 
 
-def _merge(t_a, ray_a, t_b, ray_b, max_delta, near, far):
-    """Union sorted by (ray, t) with Voronoi intervals (mirror of :func:`toolkit.sampling.merge_samples`)."""
+def _merge(t_a, ray_a, t_b, ray_b, max_delta, near, far, sample_max_delta=None):
+    """Union sorted by (ray, t) with Voronoi intervals (mirror of :func:`toolkit.sampling.merge_samples`);
+    ``sample_max_delta`` [S_a + S_b] (each sample's longest interval) replaces the per-ray ``max_delta``."""
     t = np.concatenate([t_a, t_b])
     r = np.concatenate([ray_a, ray_b])
     if t.size == 0:
@@ -398,7 +593,7 @@ def _merge(t_a, ray_a, t_b, ray_b, max_delta, near, far):
     key = r.astype(np.float64) + np.clip((t.astype(np.float64) - near.astype(np.float64)[r]) / span[r], 0.0, 1.0 - 1e-9)
     order = np.argsort(key, kind="stable")
     t, r = t[order], r[order]
-    half = np.float32(0.5) * max_delta[r]
+    half = np.float32(0.5) * (max_delta[r] if sample_max_delta is None else sample_max_delta[order])
     same_prev = np.concatenate([[False], r[1:] == r[:-1]])
     same_next = np.concatenate([r[:-1] == r[1:], [False]])
     gap = t[1:] - t[:-1]
@@ -437,8 +632,8 @@ def render_rays(model: FieldModel, origins: np.ndarray, directions: np.ndarray, 
     st = settings or model.settings
     f32 = np.float32
     R, n = origins.shape[0], int(st.n_coarse)
-    far_m = np.maximum(far, near)
-    edges = near[:, None] + (far_m - near)[:, None] * _torch_linspace01(n)[None]
+    space = model.space
+    edges = stratified_edges(origins, directions, near, far, space, n)
     starts, ends = edges[:, :-1], edges[:, 1:]
     mids = f32(0.5) * (starts + ends)
     pts = origins[:, None, :] + mids[..., None] * directions[:, None, :]
@@ -453,12 +648,15 @@ def render_rays(model: FieldModel, origins: np.ndarray, directions: np.ndarray, 
         pdf = np.zeros((R, n), f32)
         pdf[ray_c, k_c] = w_c
         counts[np.unique(ray_c)] = st.n_fine
-        t_f, ray_f = _sample_fine(edges, pdf, counts)
+        t_f, ray_f, k_f = _sample_fine(edges, pdf, counts, return_strata=True)
     else:
-        t_f, ray_f = np.zeros(0, f32), np.zeros(0, np.int64)
+        t_f, ray_f, k_f = np.zeros(0, f32), np.zeros(0, np.int64), np.zeros(0, np.int64)
     out_f = model.query(origins[ray_f] + t_f[:, None] * directions[ray_f], directions[ray_f], sh)
     max_delta = (np.maximum(far, near) - near) / f32(n)
-    s0, s1, ri, order = _merge(tmid_c, ray_c, t_f, ray_f, max_delta, near, far)
+    sample_delta = None
+    if space.contraction:  # strata of unequal length: each sample spans at most its own stratum
+        sample_delta = np.concatenate([t1c - t0c, edges[ray_f, k_f + 1] - edges[ray_f, k_f]]).astype(f32)
+    s0, s1, ri, order = _merge(tmid_c, ray_c, t_f, ray_f, max_delta, near, far, sample_delta)
     outs = {k: np.concatenate([out_c[k], out_f[k]])[order] for k in out_c}
     weights = render_weights(outs["density"], s1 - s0, ri, R)
     opacity = _accumulate(weights, None, ri, R)
@@ -502,7 +700,8 @@ def render_view(model: FieldModel, camera: PinholeCamera, settings: RenderSettin
     """
     st = settings or model.settings
     md = model.metadata
-    rays = generate_camera_rays(camera, model.aabb, md.get("near"), md.get("far"), st.near_min)
+    rays = generate_camera_rays(camera, model.space if model.space.contraction else model.aabb, md.get("near"),
+                                md.get("far"), st.near_min)
     total = rays["origins"].shape[0]
     parts: dict[str, list[np.ndarray]] = {}
     for i in range(0, total, st.chunk):

@@ -10,7 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["painting_texture", "plank_texture", "stone_texture", "twisted_sculpture_mesh", "write_ply", "sky_environment"]
+__all__ = [
+    "painting_texture", "plank_texture", "stone_texture", "twisted_sculpture_mesh", "write_ply", "sky_environment",
+    "canvas_texture", "floor_texture", "lathe_mesh", "vase_profile", "bowl_profile", "periodic_noise",
+]
 
 
 def _srgb_to_lin(x: np.ndarray) -> np.ndarray:
@@ -93,25 +96,38 @@ def twisted_sculpture_mesh(height: float, radius: float, rings: int = 96, segmen
     r = radius * profile * (1.0 + 0.22 * np.cos(5 * A))
     ang = A + math.pi * H
     verts = np.stack([r * np.cos(ang), r * np.sin(ang), H * height], -1).reshape(-1, 3)
+    faces = _ring_faces(rings, segments)
+    bottom, top = len(verts), len(verts) + 1
+    verts = np.vstack([verts, [[0, 0, 0], [0, 0, height]]])
+    for j in range(segments):
+        faces.append((bottom, (j + 1) % segments, j))
+        faces.append((top, (rings - 1) * segments + j, (rings - 1) * segments + (j + 1) % segments))
+    faces, normals = _smooth_normals(verts, np.asarray(faces, np.int32))
+    return verts.astype(np.float32), faces, normals.astype(np.float32)
+
+
+def _ring_faces(rings: int, segments: int) -> list[tuple[int, int, int]]:
+    """Two triangles per quad of a (rings x segments) grid wrapped around the axis (outward for rings going up)."""
     faces = []
     for i in range(rings - 1):
         for j in range(segments):
             v00, v01 = i * segments + j, i * segments + (j + 1) % segments
             v10, v11 = v00 + segments, v01 + segments
             faces += [(v00, v01, v11), (v00, v11, v10)]
-    bottom, top = len(verts), len(verts) + 1
-    verts = np.vstack([verts, [[0, 0, 0], [0, 0, height]]])
-    for j in range(segments):
-        faces.append((bottom, (j + 1) % segments, j))
-        faces.append((top, (rings - 1) * segments + j, (rings - 1) * segments + (j + 1) % segments))
-    faces = np.asarray(faces, np.int32)
+    return faces
+
+
+def _smooth_normals(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drop degenerate triangles; vertex normals = normalised sums of the area-weighted face normals."""
     tri = verts[faces]
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    keep = np.linalg.norm(fn, axis=1) > 1e-14
+    faces, fn = faces[keep], fn[keep]
     normals = np.zeros_like(verts)
     for k in range(3):
         np.add.at(normals, faces[:, k], fn)
     normals /= np.linalg.norm(normals, axis=1, keepdims=True) + 1e-12
-    return verts.astype(np.float32), faces, normals.astype(np.float32)
+    return faces, normals
 
 
 def write_ply(path: Path, verts: np.ndarray, faces: np.ndarray, normals: np.ndarray) -> None:
@@ -141,3 +157,189 @@ def sky_environment(seed: int, H: int = 128, W: int = 256) -> np.ndarray:
     c[4:9] += rng.normal(0, 0.15, (5, 3))
     m = render_sh_envmap(torch.as_tensor(c), H, W).numpy()
     return np.clip(m, 0.02, None).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------ procedural galleries (seeded)
+def periodic_noise(rng: np.random.Generator, size: int, sigma: float) -> np.ndarray:
+    """Tileable smooth noise: white noise low-passed by a Gaussian of ``sigma`` pixels in Fourier space (so the
+    texture wraps without seams). float32 [size, size], zero mean, max |value| = 1."""
+    white = rng.standard_normal((size, size))
+    f = np.fft.fftfreq(size)
+    g = np.exp(-2.0 * (math.pi * sigma) ** 2 * (f[:, None] ** 2 + f[None, :] ** 2))
+    n = np.real(np.fft.ifft2(np.fft.fft2(white) * g))
+    n -= n.mean()
+    return (n / (np.abs(n).max() + 1e-12)).astype(np.float32)
+
+
+def _hsv_rgb(h: float, s: float, v: float) -> np.ndarray:
+    """HSV (h in [0, 1)) → sRGB float [3] in [0, 1]."""
+    import colorsys
+
+    return np.array(colorsys.hsv_to_rgb(h % 1.0, s, v), np.float32)
+
+
+def canvas_texture(seed: int, style: str = "strokes", aspect: float = 0.75, width: int = 512) -> np.ndarray:
+    """A procedural canvas of a given aspect (height / width), linear RGB float32 [H, W, 3], row 0 = top.
+
+    Styles: ``strokes`` (the sample's brush strokes on a random gradient, random palette), ``bands`` (a landscape-
+    like stack of horizontal colour fields under strokes), ``blocks`` (hard-edged colour rectangles, a geometric
+    abstract), ``portrait`` (dark ground, a lit oval figure, fine strokes). ``strokes`` at aspect 0.75 with the
+    sample's palette is :func:`painting_texture`; here the palette, stroke count and widths vary with ``seed``.
+    """
+    import cv2
+
+    rng = np.random.default_rng(seed + 505)
+    height = max(16, int(round(width * aspect)))
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+    yy /= height
+    xx /= width
+    hue0 = rng.uniform(0, 1)
+    spread = rng.uniform(0.05, 0.5)  # palette width in hue
+    if style == "bands":
+        edges = np.sort(rng.uniform(0.15, 0.9, int(rng.integers(2, 5))))
+        img = np.zeros((height, width, 3), np.float32)
+        k = np.searchsorted(edges, yy + 0.03 * np.sin(xx * rng.uniform(3, 12) + rng.uniform(0, 6)))
+        for b in range(len(edges) + 1):
+            img[k == b] = _hsv_rgb(hue0 + rng.uniform(-spread, spread), rng.uniform(0.2, 0.8), rng.uniform(0.3, 0.95))
+    elif style == "blocks":
+        img = np.broadcast_to(_hsv_rgb(hue0, rng.uniform(0.0, 0.3), rng.uniform(0.7, 0.95)), (height, width, 3)).copy()
+        for _ in range(int(rng.integers(3, 9))):
+            x0, y0 = rng.uniform(0, 0.8, 2)
+            x1, y1 = x0 + rng.uniform(0.1, 0.6), y0 + rng.uniform(0.1, 0.6)
+            m = (xx >= x0) & (xx < x1) & (yy >= y0) & (yy < y1)
+            img[m] = _hsv_rgb(hue0 + rng.uniform(-spread, spread) + rng.choice([0, 0.5]), rng.uniform(0.4, 1.0), rng.uniform(0.2, 0.95))
+        for _ in range(int(rng.integers(0, 5))):  # dark grid lines
+            if rng.uniform() < 0.5:
+                x = int(rng.uniform(0, width)); img[:, x : x + int(rng.integers(3, 9))] = 0.05  # noqa: E702
+            else:
+                y = int(rng.uniform(0, height)); img[y : y + int(rng.integers(3, 9))] = 0.05  # noqa: E702
+    elif style == "portrait":
+        ground = _hsv_rgb(hue0, rng.uniform(0.3, 0.8), rng.uniform(0.05, 0.2))
+        face = _hsv_rgb(rng.uniform(0.03, 0.1), rng.uniform(0.3, 0.6), rng.uniform(0.6, 0.9))
+        cx, cy = rng.uniform(0.4, 0.6), rng.uniform(0.35, 0.5)
+        r = ((xx - cx) / 0.22) ** 2 + ((yy - cy) / (0.3 / max(aspect, 0.3) * 0.75)) ** 2
+        body = ((xx - cx) / 0.4) ** 2 + ((yy - 1.05) / 0.45) ** 2
+        img = np.broadcast_to(ground, (height, width, 3)).copy() * (0.7 + 0.6 * (1 - yy))[..., None]
+        img[body < 1] = _hsv_rgb(hue0 + 0.5, rng.uniform(0.3, 0.9), rng.uniform(0.1, 0.5))
+        img = np.where((r < 1)[..., None], face * (1.1 - 0.4 * r[..., None]), img)
+    else:  # strokes
+        c0 = _hsv_rgb(hue0, rng.uniform(0.1, 0.5), rng.uniform(0.4, 0.9))
+        c1 = _hsv_rgb(hue0 + spread, rng.uniform(0.1, 0.5), rng.uniform(0.4, 0.9))
+        t = (0.5 * xx + 0.5 * yy)[..., None]
+        img = c0 * (1 - t) + c1 * t
+    img = np.clip(img, 0, 1) * 255.0
+    n_strokes = {"strokes": int(rng.integers(120, 320)), "bands": int(rng.integers(40, 160)),
+                 "blocks": int(rng.integers(0, 40)), "portrait": int(rng.integers(30, 120))}.get(style, 200)
+    wmin, wmax = (2, 8) if style in ("portrait", "blocks") else (4, 18)
+    for _ in range(n_strokes):
+        col = _hsv_rgb(hue0 + rng.uniform(-spread, spread) + (0.5 if rng.uniform() < 0.2 else 0.0),
+                       rng.uniform(0.3, 1.0), rng.uniform(0.3, 1.0)) * 255.0
+        overlay = img.copy()
+        x0, y0 = rng.uniform(0, width), rng.uniform(0, height)
+        ang = rng.uniform(0, math.pi) if style != "bands" else rng.normal(0, 0.25)
+        length = rng.uniform(15, 130)
+        pts = []
+        for t in np.linspace(0, 1, 8):
+            bend = 12 * math.sin(math.pi * t) * rng.uniform(-1, 1)
+            pts.append((x0 + t * length * math.cos(ang) - bend * math.sin(ang), y0 + t * length * math.sin(ang) + bend * math.cos(ang)))
+        cv2.polylines(overlay, [np.int32(pts)], False, col.tolist(), int(rng.uniform(wmin, wmax)), lineType=cv2.LINE_AA)
+        a = rng.uniform(0.4, 0.9)
+        img = img * (1 - a) + overlay * a
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.8)
+    return _srgb_to_lin(np.clip(img / 255.0, 0, 1))
+
+
+def floor_texture(kind: str, seed: int, tone: tuple[float, float, float], size: int = 512) -> np.ndarray:
+    """A tileable floor texture for a 2 m x 2 m tile, linear RGB float32 [size, size, 3].
+
+    Kinds: ``planks`` (boards along x in ``tone``, seams, grain), ``stone`` (0.5 m slabs, mottled, grout lines),
+    ``concrete`` (large smooth blotches, fine speckle), ``carpet`` (fine fibre noise, a faint weave). ``tone`` is the
+    mean sRGB colour.
+    """
+    rng = np.random.default_rng(seed + 606)
+    base = np.asarray(tone, np.float32)
+    yy, xx = np.mgrid[0:size, 0:size]
+    if kind == "planks":
+        planks = int(rng.integers(8, 14))
+        rows = (yy * planks) // size
+        seams = np.sort(rng.uniform(0, size, (planks, 2)), axis=1)  # two boards per row; one of them wraps around x
+        streak = periodic_noise(rng, size, 1.5)
+        streak = 0.7 * streak.mean(1, keepdims=True) / (np.abs(streak.mean(1)).max() + 1e-6) + 0.3 * streak  # grain along x
+        img = np.zeros((size, size, 3), np.float32)
+        for p in range(planks):
+            m = rows == p
+            xs = xx[m]
+            part = ((xs >= seams[p, 0]) & (xs < seams[p, 1])).astype(int)
+            tones = base[None] * rng.uniform(0.8, 1.15, (2, 1)) + rng.uniform(-0.02, 0.02, (2, 3))
+            img[m] = tones[part]
+        img *= (1.0 + 0.2 * streak)[..., None]
+        edge = ((yy * planks) % size) < max(2, size // 256)
+        img[edge] *= 0.55
+        for p in range(planks):
+            for s in seams[p]:
+                img[(rows == p) & (np.abs(xx - s) < 1.5)] *= 0.55
+    elif kind == "stone":
+        slabs = 4
+        n = periodic_noise(rng, size, 2.0) + 0.6 * periodic_noise(rng, size, 10.0)
+        cell = (yy * slabs // size) * slabs + (xx * slabs // size)
+        shade = rng.uniform(0.85, 1.12, slabs * slabs)[cell]
+        img = base[None, None] * (shade * (1.0 + 0.12 * n))[..., None]
+        grout = ((xx * slabs) % size < 3) | ((yy * slabs) % size < 3)
+        img[grout] = base * 0.5
+    elif kind == "concrete":
+        n = periodic_noise(rng, size, 25.0) + 0.4 * periodic_noise(rng, size, 4.0) + 0.25 * periodic_noise(rng, size, 0.7)
+        img = base[None, None] * (1.0 + 0.12 * n)[..., None]
+    else:  # carpet
+        n = 0.6 * periodic_noise(rng, size, 0.6) + 0.4 * periodic_noise(rng, size, 12.0)
+        weave = 0.04 * np.sin(2 * math.pi * xx * 64 / size) * np.sin(2 * math.pi * yy * 64 / size)
+        img = base[None, None] * (1.0 + 0.25 * n + weave)[..., None]
+    return _srgb_to_lin(np.clip(img, 0, 1))
+
+
+def _smooth_outline(knots_t, knots_r, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Piecewise-linear radius through knots, smoothed by a 7-tap box (ends kept): t [n], r [n]."""
+    t = np.linspace(0.0, 1.0, n)
+    r = np.interp(t, knots_t, knots_r)
+    r = np.convolve(np.pad(r, 3, mode="edge"), np.ones(7) / 7, mode="valid")
+    return t, r
+
+
+def vase_profile(rng: np.random.Generator, radius: float, height: float, n: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """A closed vase outline for :func:`lathe_mesh`: (radii, heights) from the base centre, up the outside, to the
+    lid centre; the widest point is ``radius``."""
+    belly, neck_t = rng.uniform(0.25, 0.5), rng.uniform(0.65, 0.85)
+    foot, neck, lip = rng.uniform(0.4, 0.7), rng.uniform(0.3, 0.6), rng.uniform(0.4, 0.8)
+    t, r = _smooth_outline([0.0, belly, neck_t, 1.0], [foot, 1.0, neck, lip], n)
+    r = radius * r / r.max()
+    return np.concatenate([[0.0], r, [0.0]]), np.concatenate([[0.0], t * height, [height]])
+
+
+def bowl_profile(rng: np.random.Generator, radius: float, height: float, n: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """An open bowl: base centre → foot → outer wall up to the rim → inner wall back down to the inner bottom
+    centre (a closed outline for :func:`lathe_mesh`; the rim radius is ``radius``)."""
+    wall = radius * rng.uniform(0.06, 0.1)
+    foot = rng.uniform(0.35, 0.55)
+    t = np.linspace(0.0, 1.0, n)
+    outer_r = radius * (foot + (1 - foot) * np.sin(0.5 * math.pi * t) ** rng.uniform(0.6, 1.2))
+    outer_z = height * t
+    ti = t[::-1]
+    inner_r = np.maximum(outer_r[::-1] - wall, 0.0) * ti**0.35
+    inner_z = wall + (height - wall) * ti
+    return np.concatenate([[0.0], outer_r, inner_r, [0.0]]), np.concatenate([[0.0], outer_z, inner_z, [wall]])
+
+
+def lathe_mesh(radii: np.ndarray, heights: np.ndarray, segments: int = 64):
+    """Revolve an outline ``(r(s), z(s))`` about +z (points with r = 0 become poles).
+
+    Returns:
+        vertices float32 [V, 3], faces int32 [F, 3] (outward for an outline that runs base → top on the outside),
+        smooth vertex normals float32 [V, 3].
+    """
+    radii = np.asarray(radii, np.float64)
+    heights = np.asarray(heights, np.float64)
+    a = np.linspace(0.0, 2 * math.pi, segments, endpoint=False)
+    rings = len(radii)
+    verts = np.stack([radii[:, None] * np.cos(a)[None], radii[:, None] * np.sin(a)[None], np.broadcast_to(heights[:, None], (rings, segments))], -1)
+    verts = verts.reshape(-1, 3)
+    faces, normals = _smooth_normals(verts, np.asarray(_ring_faces(rings, segments), np.int32))  # the poles' slivers go
+    return verts.astype(np.float32), faces, normals.astype(np.float32)

@@ -1,54 +1,102 @@
-"""Path-trace the synthetic gallery-corner sample (Mitsuba 3) with full ground truth.
+"""Path-trace galleries with full ground truth (Mitsuba 3): the bundled sample, and procedural galleries by seed.
 
-A back wall and a planked floor (world +z up, metres), a procedural painting (roughness 0.8, metallic 0) in a gold
-metal frame on the wall, and a stone pedestal carrying a twisted metal sculpture inside a glass case. Materials are
-Mitsuba's ``principled`` BSDF; the glass panes use ``thindielectric`` (an ideal smooth thin pane, i.e. the
-``principledthin`` limit with zero roughness and no diffuse lobe). The only light is an HDR environment (``envmap``),
-so its SH projection is the ground-truth lighting.
+Two kinds of scene share one renderer:
+
+* ``--preset sample`` (:meth:`GalleryConfig.sample`, the default): the bundled ``samples/gallery`` — a back wall and
+  a planked floor (an open corner), a procedural painting (roughness 0.8) in a gold frame, a stone pedestal with a
+  twisted metal sculpture in a glass case, lit only by an HDR environment. ``make sample`` re-renders it with the
+  ``sample`` profile (80 + 20 views, 400 spp, the hand-set ``aabb``); its ``"sh"`` is the environment's SH.
+* ``--seed N`` (:func:`procedural.random_gallery`): a closed gallery room drawn from the seed — size, walls, floor,
+  a ceiling with 0–3 skylights or an open top, 1–5 framed paintings (gilt, wood, glass-covered), pedestals with metal
+  and ceramic exhibits, display cases, benches and signs, daylight from an HDR probe plus 0–4 lamps, camera
+  walks/arcs/close-ups inside the room (see ``samples/procedural.py``). Profiles: ``validation`` (128 px, 100 + 20
+  views, passes of 64 spp until two renders would agree at ≥ 38 dB, at most 1024 spp) and ``prior`` (160 px,
+  10 + 2 views, 2 x 24 spp) for network training. ``samples/galleries.py`` caches them by seed.
+
+Daylight: through an open top the probe is seen and lights the room directly (open-top rooms draw the two probes
+whose light is spread, :data:`procedural.SMOOTH_PROBES`). Skylights are frosted, as museum skylights are (direct
+sun is kept off the art): each is a laylight, a Lambertian diffuser flush with the ceiling whose radiance is the probe's
+upward irradiance / π (:func:`daylight_radiance`, recorded as ``render.skylight_radiance``). Clear skylights were
+tried and dropped: a path tracer finds the sky through a small opening so rarely that 512 spp left the views at
+15–20 dB (two-render PSNR), where laylights and lamps give 36–38 dB at 256 spp. Every emitter is picked for
+next-event estimation with the same probability (Mitsuba's default): picking in proportion to flux starved the spots
+that light a painting (its views fell from 42 to 30 dB at 256 spp).
 
 Conventions (SPEC): cameras are OpenGL camera-to-world (x right, y up, looking −z); Mitsuba's sensor looks +z with x
 to the left, so ``to_world = c2w @ diag(−1, 1, −1, 1)`` (:func:`c2w_to_mitsuba`). Pinhole, square pixels, principal
-point at the image centre, pixel centres at ``(col+½, row+½)``.
+point at the image centre, pixel centres at ``(col+½, row+½)``. World +z up, metres.
 
-Ground truth (per view):
+Materials: Mitsuba's ``principled`` BSDF; glass (case panes, painting covers) is ``thindielectric`` (an ideal smooth
+thin pane). The sample uses the ``path`` integrator as it was rendered; procedural galleries use ``volpath``, whose
+shadow rays pass through the panes' null-transmission lobe (Fresnel-weighted), so lamps light exhibits in cases and
+paintings under glass (``path`` treats panes as opaque for next-event estimation).
 
-* ``radiance``: path-traced linear radiance, box pixel filter (each pixel averages its own footprint).
-* ``depth`` (along −z_cam, metres), ``semantic``, ``metal``: one ray through each pixel centre (no blending, so every
-  depth is a real surface point and labels are hard).
-* ``normal`` (world, facing the camera), ``albedo`` (linear principled ``base_color``), ``roughness``, ``metallic``:
-  anti-aliased with 4x4 stratified rays per pixel, averaged over the rays that hit geometry.
-* Glass rule: the case panes are clear (≈92 % transmission), so the image shows what lies behind them. Depth, normal
-  and material maps describe the first opaque surface behind the glass (what the pixel shows, so photometric and
-  geometric supervision agree); the label is the sculpture's where that surface is the sculpture (an annotator labels
-  the exhibit) and ``display`` (2) elsewhere inside the case's silhouette. The case geometry is in the JSON
-  (``scene.case_box``). Rays that miss everything: label 255, depth 0, maps 0.
+Ground truth (per view, one file per map, keys as in SPEC / nerfstudio):
 
-The environment "as used" is what Mitsuba evaluates: the input map (SPEC lat-long, bilinear between pixel centres) is
-resampled onto Mitsuba's texel grid (rows at ``θ = π·row/(H−1)``) and placed with ``to_world = rotate_z(env_rotate) ·
-rotate_x(90°)``; ``env.hdr`` is the loaded emitter queried at SPEC lat-long pixel centres (input resolution), and
-``"sh"`` is the :func:`toolkit.sh.fit_sh_probe` projection of a 2x denser query of the same emitter. Exposure: the
-environment is scaled so the images' mean sRGB is ≈ 0.42 (bisection on a low-resolution preview; exact because the
-environment is the only light); the factor is ``render.exposure`` and is already in ``env.hdr``, ``"sh"`` and the images.
+* ``radiance`` (``*.hdr``): path-traced linear radiance, box pixel filter; the PNG is its sRGB (clipped at 1).
+* ``depth`` (along −z_cam, metres, 16-bit PNG in mm), ``semantic`` (uint8: 0 painting, 1 frame, 2 display, 3 base,
+  4 wall, 5 floor, 6 other, 255 nothing hit = sky through an opening or the open top), ``metal`` (255 where the
+  surface is the metal subclass — metallic ≥ 0.5 — of frame, base or other): one ray through each pixel centre (hard
+  labels; every depth is a real surface point).
+* ``normal`` (world, facing the camera, encoded (n+1)/2, 0 where nothing was hit), ``albedo`` (linear principled
+  ``base_color``), ``roughness``, ``metallic``: anti-aliased, the mean of ``gt_subsamples²`` stratified rays per
+  pixel over the rays that hit geometry.
+* Classes: the ceiling, skylight wells and diffusers, ceiling lamp panels and walls are ``wall`` (4) — there is no
+  ceiling class and, like a wall, the ceiling with what is set into it is room structure that a room prior should
+  treat as such; exhibits, benches, sign stands and wall plaques are ``other`` (6); pedestals ``base`` (3); a
+  painting's glass cover is part of the painting (0).
+* Glass rule: panes are clear (≈ 92 % transmission), so the image shows what lies behind them. Depth, normal and
+  material maps describe the first opaque surface behind the glass (what the pixel shows, so photometric and
+  geometric supervision agree). Behind a painting's cover the label is the canvas's (0). Through a display case the
+  label is ``other`` (6) where that surface is an exhibit (an annotator labels the exhibit) and ``display`` (2)
+  elsewhere inside the case's silhouette. A ray that crosses glass and escapes keeps the first pane's values.
 
-Noise: 400 spp with the ``multijitter`` sampler; two renders with different seeds agree at ≈ 41–42 dB PSNR on the 8-bit
-sRGB PNGs (``--noise-check N`` measures it).
+Scene-level light ground truth (JSON): for a closed room the environment probe is not the scene's light, so
+``"sh"`` is the SPEC SH projection (incident radiance, world +z up, [9, 3], :func:`toolkit.sh.fit_sh_probe`
+conventions) of the incident radiance at one point — the room centre at eye height 1.6 m
+(:func:`procedural.probe_point`, stored as ``render.sh_point``): a cube map (6 perspective 90° views of
+``probe_face`` px, ``probe_spp`` spp, same integrator) projected with exact per-pixel solid angles, plus the point and
+spot lamps added analytically (a delta lamp contributes ``E·Y(ω)`` with ``E`` the irradiance Mitsuba's own emitter
+query gives at the point, 0 when occluded; a cube map cannot see them). ``light.hdr`` (``"envmap"``) is that
+panorama as a SPEC lat-long map with the delta lamps splatted into their pixels; ``"sh_env"`` is the probe's own SH
+at the exposure used (the :func:`environment_as_used` query projected, as the sample's ``"sh"``), and
+``env.hdr`` (``"probe_envmap"``) that probe. The cube-map projection reproduces a probe's SH to 0.2 % of its DC term
+when nothing occludes it (16 px faces; tested); in the sample's open corner the point SH differs from the probe's by
+≤ 0.10 of the DC term, in the z and y bands (the floor replaces the lower hemisphere, the wall a slice of +y). For the sample preset ``"sh"`` keeps its old meaning (the environment's
+SH — the corner is open and lit by nothing else) and the cube-map SH is stored as ``"sh_point"``.
+
+Exposure: the sample scales the environment so the preview's mean sRGB is 0.42. A procedural gallery renders a
+preview (8 train views, 48 px, 16 spp) with the environment alone and with the lamps alone, mixes them so the lamps
+give ``lighting.lamp_share`` of the mean radiance, and scales both so the mean sRGB is ``lighting.target_mean_srgb``
+(bisection; exact up to preview noise because rendering is linear in the emitters). The factors are in
+``render.exposure`` and already in the images, ``"sh"``, ``"sh_env"`` and the HDR files.
+
+Noise: a procedural view is rendered in passes of ``spp_per_pass`` samples with distinct seeds; the PSNR between
+the mean of the even and the mean of the odd passes (8-bit sRGB) plus 3.01 dB estimates how well two full renders
+with different seeds would agree (each half has twice the variance of the whole). With ``target_noise_db`` a view
+gets more passes until the estimate reaches it (``max_passes`` caps it). Per-view spp and estimates are in the
+frames, their summary in ``render.noise``; ``--noise-check N`` measures it directly with two full renders. The
+sample: 400 spp ``multijitter``, two seeds agree at ≈ 41–42 dB.
 
 Usage::
 
-    DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 \\
-    .venv/bin/python samples/render_gallery.py --out samples/gallery --size 128 --n-train 80 --n-test 20
+    export DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1
+    .venv/bin/python samples/render_gallery.py --preset sample --out samples/gallery          # make sample
+    .venv/bin/python samples/render_gallery.py --seed 7 --profile validation --out /tmp/g7
+    .venv/bin/python samples/render_gallery.py --seed 7 --profile prior --out /tmp/g7p --box  # + a tight room aabb
+    .venv/bin/python samples/render_gallery.py --seed 7 --print-config                        # the drawn config
 """
 
 from __future__ import annotations
 
 import json
 import math
-import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+import zlib
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Literal, Sequence
 
 import numpy as np
 
@@ -59,82 +107,55 @@ if str(_REPO) not in sys.path:
 from toolkit._checks import ConfigError, DarsError  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from gallery_assets import (  # noqa: E402
-    painting_texture,
-    plank_texture,
-    sky_environment,
-    stone_texture,
-    twisted_sculpture_mesh,
-    write_ply,
+from gallery_scene import (  # noqa: E402,F401  (re-exported: tools and tests use render_gallery.<name>)
+    DEFAULT_ENV,
+    ENVMAPS,
+    GT_RULES,
+    LIBLLVM19,
+    Environment,
+    _auto_exposure,
+    _Built,
+    _mitsuba_env_bitmap,
+    _trace,
+    _trace_gt,
+    build_scene,
+    c2w_to_mitsuba,
+    daylight_radiance,
+    daylight_reaches,
+    default_variant,
+    env_emitter_visible,
+    environment_as_used,
+    environment_of,
+    focal_from_fov,
+    import_mitsuba,
+    llvm_available,
+    load_environment,
+    pixel_rays,
+    render_gt,
+    sample_cameras,
+    scene_meta,
 )
-
-LIBLLVM19 = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
-DEFAULT_ENV = "/work/shared/data/envmaps/probulator_pisa_256x128.hdr"
-
-CLASSES = {"painting": 0, "frame": 1, "display": 2, "base": 3, "wall": 4, "floor": 5, "other": 6}
-BACKGROUND = 255
+from procedural import (  # noqa: E402,F401
+    BACKGROUND,
+    CLASSES,
+    GENERATOR_VERSION,
+    GalleryConfig,
+    check_cameras,
+    gallery_cameras,
+    look_at,
+    probe_point,
+    random_gallery,
+    sample_front_cameras,
+)
 
 
 # ------------------------------------------------------------------------------------------------------ configuration
-@dataclass(frozen=True)
-class GalleryConfig:
-    """Geometry and materials of the gallery corner (metres, world +z up; the wall faces −y)."""
-
-    seed: int = 0
-    """Seed of the procedural textures (painting strokes, planks, stone)."""
-    wall_y: float = 1.0
-    """The back wall is the plane y = wall_y, x ∈ [−3, 3], z ∈ [0, wall_height]."""
-    wall_height: float = 2.6
-    floor_extent: tuple[float, float, float, float] = (-3.0, 3.0, -3.5, 1.0)
-    """Floor rectangle (xmin, xmax, ymin, ymax) at z = 0."""
-    painting_center: tuple[float, float] = (-0.6, 1.45)
-    """(x, z) of the canvas centre."""
-    painting_size: tuple[float, float] = (1.1, 0.8)
-    """Canvas width and height."""
-    frame_width: float = 0.06
-    frame_depth: float = 0.05
-    canvas_inset: float = 0.015
-    """Canvas plane sits at y = wall_y − canvas_inset (inside the frame, whose front is at wall_y − frame_depth)."""
-    pedestal_center: tuple[float, float] = (0.75, 0.4)
-    pedestal_half: float = 0.25
-    pedestal_height: float = 0.95
-    case_half: float = 0.23
-    case_height: float = 0.52
-    sculpture_height: float = 0.42
-    sculpture_radius: float = 0.12
-    wall_color: tuple[float, float, float] = (0.80, 0.78, 0.74)
-    frame_color: tuple[float, float, float] = (1.0, 0.71, 0.29)
-    sculpture_color: tuple[float, float, float] = (0.92, 0.90, 0.86)
-    materials: dict[str, dict[str, Any]] = field(
-        default_factory=lambda: {
-            "painting": {"roughness": 0.8, "metallic": 0.0, "base_color": "texture (procedural brush strokes)"},
-            "frame": {"roughness": 0.3, "metallic": 1.0},
-            "display": {"bsdf": "thindielectric", "ior": 1.5, "roughness": 0.0, "metallic": 0.0, "base_color": [1.0, 1.0, 1.0]},
-            "base": {"roughness": 0.6, "metallic": 0.0, "base_color": "texture (stone)"},
-            "wall": {"roughness": 0.9, "metallic": 0.0},
-            "floor": {"roughness": 0.45, "metallic": 0.0, "base_color": "texture (planks)"},
-            "other": {"roughness": 0.2, "metallic": 1.0},
-        }
-    )
-
-
-@dataclass(frozen=True)
-class Environment:
-    """An environment light: a SPEC lat-long radiance map plus its placement."""
-
-    latlong: np.ndarray
-    """float32 [H, W, 3] linear radiance, SPEC lat-long (tint and scale applied)."""
-    rotate_z_deg: float = 0.0
-    """Rotation of the map about world +z (right-handed)."""
-    source: str = ""
-    """Where it came from (file name or ``sky:<seed>``)."""
-
-
 @dataclass(frozen=True)
 class RenderSettings:
     """Path-tracing options of :func:`render_views`."""
 
     spp: int = 400
+    """Samples per pixel of one pass."""
     seed: int = 0
     max_depth: int = 8
     sampler: str = "multijitter"
@@ -146,406 +167,169 @@ class RenderSettings:
     gt_subsamples: int = 4
     """Stratified rays per pixel axis for the anti-aliased maps."""
     progress: bool = True
+    integrator: Literal["path", "volpath"] = "path"
+    min_passes: int = 1
+    """Passes of ``spp`` samples per view (with distinct seeds; their mean is the image)."""
+    max_passes: int = 1
+    target_noise_db: float | None = None
+    """Add passes (in pairs) until the two-render agreement estimate reaches this, up to ``max_passes``."""
+    seed_rule: Literal["sample", "hash"] = "sample"
+    """``sample``: view i uses seed ``seed·100003 + i`` (as the bundled sample); ``hash``: a hash of (seed, split,
+    view, pass), distinct across splits and passes."""
 
 
-# ------------------------------------------------------------------------------------------------------ mitsuba setup
-def llvm_available() -> bool:
-    """True when the LLVM 19 shared library the ``llvm_*`` variants need is present (else they abort Python)."""
-    path = os.environ.get("DRJIT_LIBLLVM_PATH", LIBLLVM19)
-    return Path(path).is_file() and "19" in Path(path).name
+@dataclass(frozen=True)
+class RenderOptions:
+    """A render profile: image size, views, sampling and ground-truth options of :func:`render_gallery`."""
+
+    profile: str = "validation"
+    size: int = 128
+    n_train: int = 100
+    n_test: int = 20
+    spp_per_pass: int = 64
+    min_passes: int = 4
+    max_passes: int = 16
+    target_noise_db: float | None = 38.0
+    """Two renders with different seeds should agree at this PSNR (8-bit sRGB); None: fixed ``min_passes``."""
+    sampler: str = "multijitter"
+    max_depth: int = 8
+    gt_subsamples: int = 4
+    probe_face: int = 64
+    """Cube-map face size of the SH light probe."""
+    probe_spp: int = 256
+    box: bool = False
+    """Write a tight ``aabb`` of the room into the JSON (default: none, as a real capture)."""
+    seed: int = 0
+    """Seed of the sampling noise (not of the gallery)."""
+    variant: str | None = None
+    write_hdr: bool = True
+    progress: bool = True
 
 
-def default_variant() -> str:
-    return "llvm_ad_rgb" if llvm_available() else "scalar_rgb"
-
-
-def import_mitsuba(variant: str | None = None):
-    """Import Mitsuba, select ``variant`` (checking libLLVM for ``llvm_*``) and return ``(mi, dr, variant)``."""
-    variant = variant or default_variant()
-    if variant.startswith("llvm"):
-        if not llvm_available():
-            raise ConfigError(f"variant {variant!r} needs libLLVM 19 ({LIBLLVM19}); install libllvm19 or use --variant scalar_rgb")
-        os.environ.setdefault("DRJIT_LIBLLVM_PATH", LIBLLVM19)
-    try:
-        import drjit as dr
-        import mitsuba as mi
-    except ImportError as e:
-        raise ConfigError("rendering the sample needs mitsuba: pip install 'dars-toolkit[render]' (mitsuba==3.9.1)") from e
-    mi.set_variant(variant)
-    return mi, dr, variant
-
-
-def c2w_to_mitsuba(c2w: np.ndarray) -> np.ndarray:
-    """OpenGL camera-to-world (x right, y up, looks −z) → Mitsuba sensor ``to_world`` (x left, y up, looks +z).
-
-    Args:
-        c2w: float [4, 4].
-
-    Returns:
-        float64 [4, 4] ``c2w @ diag(−1, 1, −1, 1)``.
-    """
-    c2w = np.asarray(c2w, dtype=np.float64)
-    if c2w.shape != (4, 4):
-        raise DarsError(f"c2w must be 4x4, got shape {list(c2w.shape)}")
-    return c2w @ np.diag([-1.0, 1.0, -1.0, 1.0])
-
-
-def focal_from_fov(fov_x_rad: float, width: int) -> float:
-    """Focal length in pixels for a horizontal field of view."""
-    return 0.5 * width / math.tan(0.5 * fov_x_rad)
-
-
-def pixel_rays(c2w: np.ndarray, fov_x_rad: float, size: int, offsets: Sequence[tuple[float, float]] = ((0.5, 0.5),)):
-    """World rays through pixel positions ``(col + ox, row + oy)`` (toolkit convention, ``z_cam = −1``).
-
-    Returns:
-        origins float64 [S, H, W, 3], unit directions [S, H, W, 3], and the camera-axis scale ``1/|d_cam|``
-        [S, H, W] (depth along −z_cam = t · scale) for the S offsets.
-    """
-    f = focal_from_fov(fov_x_rad, size)
-    c = size / 2.0
-    rows, cols = np.meshgrid(np.arange(size, dtype=np.float64), np.arange(size, dtype=np.float64), indexing="ij")
-    dirs, scales = [], []
-    for ox, oy in offsets:
-        x = (cols + ox - c) / f
-        y = -(rows + oy - c) / f
-        d_cam = np.stack([x, y, -np.ones_like(x)], -1)
-        norm = np.linalg.norm(d_cam, axis=-1)
-        dirs.append((d_cam / norm[..., None]) @ c2w[:3, :3].T)
-        scales.append(1.0 / norm)
-    dirs = np.stack(dirs)
-    origins = np.broadcast_to(c2w[:3, 3], dirs.shape).copy()
-    return origins, dirs, np.stack(scales)
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenGL camera-to-world looking from ``eye`` at ``target`` (float64 [4, 4])."""
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    back = eye - target
-    back /= np.linalg.norm(back)
-    right = np.cross(up, back)
-    right /= np.linalg.norm(right)
-    true_up = np.cross(back, right)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, true_up, back, eye
-    return m
-
-
-def sample_cameras(n: int, seed: int, target=(0.05, 0.55, 1.0)) -> np.ndarray:
-    """``n`` camera-to-world matrices in front of the scene: distance 2.5–3.5 m, azimuth ±60° about −y,
-    elevation 5–35°, looking at points jittered ±0.2 m around ``target``. Returns float64 [n, 4, 4]."""
-    rng = np.random.default_rng(seed)
-    out = np.zeros((n, 4, 4))
-    for i in range(n):
-        dist = rng.uniform(2.5, 3.5)
-        az = math.radians(rng.uniform(-60.0, 60.0))
-        el = math.radians(rng.uniform(5.0, 35.0))
-        tgt = np.asarray(target) + rng.uniform(-0.2, 0.2, 3)
-        eye = tgt + dist * np.array([math.sin(az) * math.cos(el), -math.cos(az) * math.cos(el), math.sin(el)])
-        out[i] = look_at(eye, tgt)
-    return out
-
-
-def load_environment(env: str, rotate_deg: float = 0.0, tint=(1.0, 1.0, 1.0), scale: float = 1.0, seed: int = 0) -> Environment:
-    """``env`` is an ``.hdr``/``.exr`` SPEC lat-long map or ``sky``; tint and scale are multiplied in."""
-    from toolkit.sh import read_envmap
-
-    if env == "sky":
-        img, src = sky_environment(seed), f"sky:{seed}"
-    else:
-        img, src = read_envmap(env), Path(env).name
-    img = img * np.asarray(tint, np.float32)[None, None] * np.float32(scale)
-    return Environment(latlong=np.ascontiguousarray(img, np.float32), rotate_z_deg=float(rotate_deg), source=src)
-
-
-def _mitsuba_env_bitmap(latlong: np.ndarray) -> np.ndarray:
-    """Resample a SPEC lat-long map onto Mitsuba's envmap texel grid at twice the resolution.
-
-    Mitsuba places texel (i, j) of an Hm x Wm bitmap at θ = π·i/(Hm−1) and φ = 2π(j+½)/Wm (checked against the
-    emitter in tests), so texel values are our map bilinearly interpolated at those directions.
-    """
-    import torch
-
-    from toolkit.sh import lookup_latlong
-
-    H, W = latlong.shape[:2]
-    Hm, Wm = 2 * H, 2 * W
-    theta = np.arange(Hm) * math.pi / (Hm - 1)
-    phi = (np.arange(Wm) + 0.5) * 2 * math.pi / Wm
-    T, P = np.meshgrid(theta, phi, indexing="ij")
-    d = np.stack([np.sin(T) * np.sin(P), np.sin(T) * np.cos(P), np.cos(T)], -1)
-    out = lookup_latlong(torch.as_tensor(latlong, dtype=torch.float64), torch.as_tensor(d)).numpy()
-    return np.ascontiguousarray(out.astype(np.float32))
-
-
-# ------------------------------------------------------------------------------------------------------ scene build
-@dataclass
-class _Built:
-    scene: Any
-    shapes: list  # mitsuba shape objects, in the order of `info`
-    info: list  # per shape: dict(name, cls, base_color (tuple or texture), roughness, metallic)
-    meta: dict
-
-
-def build_scene(mi, cfg: GalleryConfig, env: Environment, workdir: Path) -> _Built:
-    """Create the Mitsuba scene; returns it with per-shape class and material information."""
-    T = mi.ScalarTransform4f
-    m = cfg.materials
-    wy, px, pz = cfg.wall_y, cfg.painting_center[0], cfg.painting_center[1]
-    pw, ph = cfg.painting_size[0] / 2, cfg.painting_size[1] / 2
-    fw, fd = cfg.frame_width, cfg.frame_depth
-    cx, cy, ch = cfg.pedestal_center[0], cfg.pedestal_center[1], cfg.pedestal_height
-    tex_paint = mi.load_dict({"type": "bitmap", "bitmap": mi.Bitmap(painting_texture(cfg.seed)), "raw": True})
-    tex_floor = mi.load_dict(
-        {"type": "bitmap", "bitmap": mi.Bitmap(plank_texture(cfg.seed)), "raw": True,
-         "to_uv": T().scale([(cfg.floor_extent[1] - cfg.floor_extent[0]) / 2.0, (cfg.floor_extent[3] - cfg.floor_extent[2]) / 2.0, 1.0])}
-    )
-    tex_stone = mi.load_dict({"type": "bitmap", "bitmap": mi.Bitmap(stone_texture(cfg.seed)), "raw": True})
-
-    def principled(base, name):
-        return {"type": "principled", "base_color": base if not isinstance(base, tuple) else {"type": "rgb", "value": list(base)},
-                "roughness": m[name]["roughness"], "metallic": m[name]["metallic"]}
-
-    entries: list[tuple[str, str, dict, Any]] = []  # (id, class, dict, base_color)
-    fx0, fx1, fy0, fy1 = cfg.floor_extent
-    entries.append(("wall", "wall", {"type": "rectangle", "to_world": T().translate([0, wy, cfg.wall_height / 2]).rotate([1, 0, 0], 90).scale([3.0, cfg.wall_height / 2, 1]),
-                                     "bsdf": principled(cfg.wall_color, "wall")}, cfg.wall_color))
-    entries.append(("floor", "floor", {"type": "rectangle", "to_world": T().translate([(fx0 + fx1) / 2, (fy0 + fy1) / 2, 0]).scale([(fx1 - fx0) / 2, (fy1 - fy0) / 2, 1]),
-                                       "bsdf": principled(tex_floor, "floor")}, tex_floor))
-    canvas_y = wy - cfg.canvas_inset
-    entries.append(("painting", "painting", {"type": "rectangle", "to_world": T().translate([px, canvas_y, pz]).rotate([1, 0, 0], 90).scale([pw, ph, 1]),
-                                             "bsdf": principled(tex_paint, "painting")}, tex_paint))
-    bars = {
-        "frame_top": ([px, wy - fd / 2, pz + ph + fw / 2], [pw + fw, fd / 2, fw / 2]),
-        "frame_bottom": ([px, wy - fd / 2, pz - ph - fw / 2], [pw + fw, fd / 2, fw / 2]),
-        "frame_left": ([px - pw - fw / 2, wy - fd / 2, pz], [fw / 2, fd / 2, ph]),
-        "frame_right": ([px + pw + fw / 2, wy - fd / 2, pz], [fw / 2, fd / 2, ph]),
-    }
-    for name, (c, h) in bars.items():
-        entries.append((name, "frame", {"type": "cube", "to_world": T().translate(c).scale(h), "bsdf": principled(cfg.frame_color, "frame")}, cfg.frame_color))
-    entries.append(("pedestal", "base", {"type": "cube", "to_world": T().translate([cx, cy, ch / 2]).scale([cfg.pedestal_half, cfg.pedestal_half, ch / 2]),
-                                         "bsdf": principled(tex_stone, "base")}, tex_stone))
-    verts, faces, normals = twisted_sculpture_mesh(cfg.sculpture_height, cfg.sculpture_radius)
-    ply = workdir / "sculpture.ply"
-    write_ply(ply, verts, faces, normals)
-    entries.append(("sculpture", "other", {"type": "ply", "filename": str(ply), "to_world": T().translate([cx, cy, ch]),
-                                           "bsdf": principled(cfg.sculpture_color, "other")}, cfg.sculpture_color))
-    a, hz = cfg.case_half, cfg.case_height
-    glass = {"type": "thindielectric", "int_ior": m["display"]["ior"], "ext_ior": 1.0}
-    panes = {
-        "case_front": T().translate([cx, cy - a, ch + hz / 2]).rotate([1, 0, 0], 90).scale([a, hz / 2, 1]),
-        "case_back": T().translate([cx, cy + a, ch + hz / 2]).rotate([1, 0, 0], 90).scale([a, hz / 2, 1]),
-        "case_left": T().translate([cx - a, cy, ch + hz / 2]).rotate([0, 1, 0], 90).scale([hz / 2, a, 1]),
-        "case_right": T().translate([cx + a, cy, ch + hz / 2]).rotate([0, 1, 0], 90).scale([hz / 2, a, 1]),
-        "case_top": T().translate([cx, cy, ch + hz]).scale([a, a, 1]),
-    }
-    for name, tw in panes.items():
-        entries.append((name, "display", {"type": "rectangle", "to_world": tw, "bsdf": glass}, (1.0, 1.0, 1.0)))
-
-    env_bitmap = _mitsuba_env_bitmap(env.latlong)
-    scene_dict: dict[str, Any] = {
-        "type": "scene",
-        "env": {"type": "envmap", "bitmap": mi.Bitmap(env_bitmap), "to_world": T().rotate([0, 0, 1], env.rotate_z_deg).rotate([1, 0, 0], 90)},
-    }
-    for name, _, d, _ in entries:
-        scene_dict[name] = d
-    scene = mi.load_dict(scene_dict, optimize=False)  # keep one shape per entry (no mesh merging)
-    by_id = {s.id(): s for s in scene.shapes()}
-    shapes, info = [], []
-    for name, cls, _, base in entries:
-        mat = m[cls]
-        shapes.append(by_id[name])
-        info.append({"name": name, "cls": cls, "label": CLASSES[cls], "base_color": base,
-                     "roughness": float(mat["roughness"]), "metallic": float(mat["metallic"])})
-    corners = [[px - pw, canvas_y, pz - ph], [px + pw, canvas_y, pz - ph], [px + pw, canvas_y, pz + ph], [px - pw, canvas_y, pz + ph]]
-    meta = {
-        "painting_corners": corners,
-        "painting_plane": {"point": [px, canvas_y, pz], "normal": [0.0, -1.0, 0.0]},
-        "frame_box": [[px - pw - fw, wy - fd, pz - ph - fw], [px + pw + fw, wy, pz + ph + fw]],
-        "pedestal_box": [[cx - cfg.pedestal_half, cy - cfg.pedestal_half, 0.0], [cx + cfg.pedestal_half, cy + cfg.pedestal_half, ch]],
-        "case_box": [[cx - a, cy - a, ch], [cx + a, cy + a, ch + hz]],
-        "sculpture_center": [cx, cy, ch + cfg.sculpture_height / 2],
-        "sculpture_box": [(verts.min(0) + [cx, cy, ch]).tolist(), (verts.max(0) + [cx, cy, ch]).tolist()],
-        "wall_plane": {"point": [0.0, wy, 0.0], "normal": [0.0, -1.0, 0.0]},
-        "floor_plane": {"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]},
-    }
-    return _Built(scene=scene, shapes=shapes, info=info, meta=meta)
-
-
-# ------------------------------------------------------------------------------------------------ ground-truth tracing
-def _trace(mi, dr, built: _Built, origins: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
-    """First hits of rays: distance t, shape index (−1 = miss), shading normal, point, base colour."""
-    n = origins.shape[0]
-    out = {"t": np.full(n, np.inf), "shape": np.full(n, -1, np.int32), "normal": np.zeros((n, 3)), "base": np.zeros((n, 3))}
-    if mi.variant().startswith("scalar"):
-        index = {s.id(): k for k, s in enumerate(built.shapes)}
-        for i in range(n):
-            si = built.scene.ray_intersect(mi.Ray3f(mi.Point3f(*origins[i]), mi.Vector3f(*dirs[i])))
-            if not si.is_valid():
-                continue
-            k = index[si.shape.id()]
-            out["t"][i], out["shape"][i] = si.t, k
-            out["normal"][i] = np.array(si.sh_frame.n)
-            base = built.info[k]["base_color"]
-            out["base"][i] = base if isinstance(base, tuple) else np.array(base.eval(si))
-        return out
-    ray = mi.Ray3f(mi.Point3f(*(origins[:, j] for j in range(3))), mi.Vector3f(*(dirs[:, j] for j in range(3))))
-    si = built.scene.ray_intersect(ray)
-    valid = np.array(si.is_valid())
-    out["t"] = np.where(valid, np.array(si.t), np.inf)
-    out["normal"] = np.array(si.sh_frame.n).T.copy()
-    for k, (s, inf) in enumerate(zip(built.shapes, built.info)):
-        mask = np.array(si.shape == mi.ShapePtr(s)) & valid
-        if not mask.any():
-            continue
-        out["shape"][mask] = k
-        base = inf["base_color"]
-        out["base"][mask] = base if isinstance(base, tuple) else np.array(base.eval(si)).T[mask]
-    out["normal"][out["shape"] < 0] = 0.0
-    return out
-
-
-def _trace_gt(mi, dr, built: _Built, origins: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
-    """First hits with the glass rule: look through the (clear) case panes to the first opaque surface.
-
-    ``label`` is that surface's class, except that a ray which crossed the case and does not land on the sculpture is
-    labelled ``display``. A ray that crosses the case and then escapes keeps the first pane's values.
-    """
-    hit = _trace(mi, dr, built, origins, dirs)
-    cls = np.array([inf["cls"] for inf in built.info] + ["none"])
-    labels = np.array([inf["label"] for inf in built.info] + [BACKGROUND], np.uint8)
-    hit["label"] = labels[hit["shape"]]
-    todo = np.nonzero(cls[hit["shape"]] == "display")[0]
-    o = origins[todo] + dirs[todo] * (hit["t"][todo, None] + 1e-4)
-    t_acc = hit["t"][todo].copy()
-    for _ in range(6):
-        if todo.size == 0:
-            break
-        nxt = _trace(mi, dr, built, o, dirs[todo])
-        t_acc = t_acc + 1e-4 + nxt["t"]
-        glass_again = cls[nxt["shape"]] == "display"
-        done = ~glass_again & (nxt["shape"] >= 0)
-        idx = todo[done]
-        for key in ("normal", "base", "shape"):
-            hit[key][idx] = nxt[key][done]
-        hit["t"][idx] = t_acc[done]
-        hit["label"][idx] = np.where(cls[nxt["shape"][done]] == "other", CLASSES["other"], CLASSES["display"])
-        keep = glass_again
-        todo, o, t_acc = todo[keep], o[keep] + dirs[todo[keep]] * (nxt["t"][keep, None] + 1e-4), t_acc[keep]
-    flip = np.sum(hit["normal"] * dirs, -1) > 0  # normals face the camera
-    hit["normal"][flip] *= -1
-    return hit
-
-
-def render_gt(mi, dr, built: _Built, c2w: np.ndarray, fov_x: float, size: int, subsamples: int = 4) -> dict[str, np.ndarray]:
-    """Ground-truth maps of one view (see the module docstring for the rules)."""
-    o, d, scale = pixel_rays(c2w, fov_x, size)
-    centre = _trace_gt(mi, dr, built, o[0].reshape(-1, 3), d[0].reshape(-1, 3))
-    rough = np.array([inf["roughness"] for inf in built.info] + [0.0])
-    metal = np.array([inf["metallic"] for inf in built.info] + [0.0])
-    sem = centre["label"].reshape(size, size)
-    depth = np.where(centre["shape"] >= 0, centre["t"] * scale[0].reshape(-1), 0.0).reshape(size, size)
-    offs = [((i + 0.5) / subsamples, (j + 0.5) / subsamples) for j in range(subsamples) for i in range(subsamples)]
-    o, d, _ = pixel_rays(c2w, fov_x, size, offs)
-    sub = _trace_gt(mi, dr, built, o.reshape(-1, 3), d.reshape(-1, 3))
-    S = len(offs)
-    hitm = (sub["shape"] >= 0).reshape(S, size, size)
-    cnt = np.maximum(hitm.sum(0), 1)[..., None]
-    avg = lambda a: (a.reshape(S, size, size, -1) * hitm[..., None]).sum(0) / cnt  # noqa: E731
-    normal = avg(sub["normal"])
-    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
-    return {
-        "depth": depth.astype(np.float32),
-        "semantic": sem,
-        "metal": np.where(np.isin(sem, [CLASSES["frame"], CLASSES["other"]]), 255, 0).astype(np.uint8),
-        "normal": normal.astype(np.float32),
-        "albedo": avg(sub["base"]).astype(np.float32),
-        "roughness": avg(rough[sub["shape"]][:, None])[..., 0].astype(np.float32),
-        "metallic": avg(metal[sub["shape"]][:, None])[..., 0].astype(np.float32),
-    }
-
-
-def environment_as_used(mi, dr, built: _Built, H: int, W: int) -> np.ndarray:
-    """Query the loaded Mitsuba environment emitter at SPEC lat-long pixel centres: float32 [H, W, 3]."""
-    from toolkit.sh import latlong_directions
-
-    d = latlong_directions(H, W).numpy().astype(np.float64).reshape(-1, 3)
-    em = built.scene.environment()
-    if mi.variant().startswith("scalar"):
-        vals = np.zeros_like(d)
-        for i in range(d.shape[0]):
-            si = dr.zeros(mi.SurfaceInteraction3f)
-            si.wi = mi.Vector3f(*(-d[i]))
-            vals[i] = np.array(em.eval(si))
-    else:
-        si = dr.zeros(mi.SurfaceInteraction3f, d.shape[0])
-        si.wi = -mi.Vector3f(d[:, 0], d[:, 1], d[:, 2])
-        vals = np.array(em.eval(si)).T
-    return vals.reshape(H, W, 3).astype(np.float32)
+PROFILES: dict[str, RenderOptions] = {
+    "validation": RenderOptions(),
+    "prior": RenderOptions(profile="prior", size=160, n_train=10, n_test=2, spp_per_pass=24, min_passes=2, max_passes=2,
+                           target_noise_db=None, gt_subsamples=2, probe_face=32, probe_spp=64),
+    "sample": RenderOptions(profile="sample", size=128, n_train=80, n_test=20, spp_per_pass=400, min_passes=1, max_passes=1,
+                            target_noise_db=None, box=True),
+    "tiny": RenderOptions(profile="tiny", size=24, n_train=2, n_test=1, spp_per_pass=4, min_passes=2, max_passes=2,
+                          target_noise_db=None, gt_subsamples=2, probe_face=8, probe_spp=4, progress=False),
+}
+"""Named profiles. ``sample`` reproduces ``samples/gallery``; ``tiny`` is for tests."""
 
 
 # ------------------------------------------------------------------------------------------------------- the stage
+def _pass_seed(settings: RenderSettings, split: str, view: int, p: int) -> int:
+    if settings.seed_rule == "sample":
+        return settings.seed * 100003 + view + 7919 * p
+    return zlib.crc32(f"{settings.seed}:{split}:{view}:{p}".encode())
+
+
+def _srgb8(x: np.ndarray) -> np.ndarray:
+    from toolkit.io import linear_to_srgb
+
+    return np.round(linear_to_srgb(np.clip(x, 0, 1)) * 255.0)
+
+
+def psnr8(a: np.ndarray, b: np.ndarray) -> float:
+    """PSNR (dB) between two linear images after 8-bit sRGB quantisation (inf if identical)."""
+    mse = float(((_srgb8(a) - _srgb8(b)) ** 2).mean())
+    return 10.0 * math.log10(255.0**2 / mse) if mse > 0 else float("inf")
+
+
+def _render_built(mi, dr, built: _Built, cameras: np.ndarray, size: int, fov_x: float, settings: RenderSettings,
+                  split: str = "", desc: str = "render") -> dict[str, Any]:
+    from tqdm import tqdm
+
+    variant = mi.variant()
+    sensor = mi.load_dict({
+        "type": "perspective", "fov": math.degrees(fov_x), "fov_axis": "x",
+        "to_world": mi.ScalarTransform4f(c2w_to_mitsuba(cameras[0]).tolist()),
+        "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+        "sampler": {"type": settings.sampler, "sample_count": settings.spp},
+    })
+    integrator = mi.load_dict({"type": settings.integrator, "max_depth": settings.max_depth, "hide_emitters": False})
+    params = mi.traverse(sensor)
+    N = len(cameras)
+    out: dict[str, Any] = {"radiance": np.zeros((N, size, size, 3), np.float32), "spp": np.zeros(N, np.int32),
+                           "noise_db": np.full(N, np.nan), "seconds_radiance": 0.0, "seconds_gt": 0.0}
+    gt_keys = {"depth": (np.float32, ()), "normal": (np.float32, (3,)), "albedo": (np.float32, (3,)), "roughness": (np.float32, ()),
+               "metallic": (np.float32, ()), "semantic": (np.uint8, ()), "metal": (np.uint8, ())}
+    if settings.gt:
+        for k, (dt, tail) in gt_keys.items():
+            out[k] = np.zeros((N, size, size) + tail, dt)
+    T = mi.ScalarTransform4f if variant.startswith("scalar") else mi.Transform4f
+    min_p, max_p = max(1, settings.min_passes), max(settings.min_passes, settings.max_passes, 1)
+    for i in tqdm(range(N), desc=f"{desc} ({variant}, {settings.spp} spp/pass)", disable=not settings.progress, file=sys.stderr):
+        t0 = time.time()
+        params["to_world"] = T(c2w_to_mitsuba(cameras[i]).tolist())
+        params.update()
+        halves = [np.zeros((size, size, 3)), np.zeros((size, size, 3))]
+        p = 0
+        while True:
+            img = mi.render(built.scene, sensor=sensor, integrator=integrator, spp=settings.spp, seed=_pass_seed(settings, split, i, p))
+            halves[p % 2] += np.array(img)[..., :3]
+            p += 1
+            if p < min_p or p % 2 == 1 and p < max_p:
+                continue
+            if p >= 2 and p % 2 == 0:
+                out["noise_db"][i] = psnr8(halves[0] / (p // 2), halves[1] / (p // 2)) + 10 * math.log10(2.0)
+            if p >= max_p or settings.target_noise_db is None or out["noise_db"][i] >= settings.target_noise_db:
+                break
+        out["radiance"][i] = ((halves[0] + halves[1]) / p).astype(np.float32)
+        out["spp"][i] = p * settings.spp
+        t1 = time.time()
+        out["seconds_radiance"] += t1 - t0
+        if settings.gt:
+            for k, v in render_gt(mi, dr, built, cameras[i], fov_x, size, settings.gt_subsamples).items():
+                out[k][i] = v
+            out["seconds_gt"] += time.time() - t1
+    return out
+
+
 def render_views(
     scene_cfg: GalleryConfig,
     cameras: np.ndarray,
-    env: Environment,
+    env: Environment | None,
     size: int,
     spp: int,
     fov_x: float = math.radians(45.0),
     settings: RenderSettings | None = None,
     workdir: str | Path | None = None,
+    lamp_scale: float = 1.0,
+    split: str = "",
 ) -> dict[str, Any]:
-    """Path-trace views of the gallery under an environment, with ground-truth maps.
+    """Path-trace views of a gallery, with ground-truth maps.
 
     Args:
-        scene_cfg: geometry and materials.
+        scene_cfg: the gallery (geometry, materials, lamps).
         cameras: float [N, 4, 4] OpenGL camera-to-world matrices.
-        env: environment light (SPEC lat-long map, world placement).
+        env: environment light (SPEC lat-long map, world placement), or None.
         size: square image size in pixels.
-        spp: samples per pixel (overrides ``settings.spp``).
+        spp: samples per pixel of one pass (overrides ``settings.spp``).
         fov_x: horizontal field of view, radians.
-        settings: seed, max depth, variant, whether to trace GT maps.
-        workdir: where to put the temporary sculpture mesh (default: a temporary directory).
+        settings: seed, passes, max depth, integrator, variant, whether to trace GT maps.
+        workdir: where to put the exhibit meshes (default: a temporary directory).
+        lamp_scale: multiplies the lamps (0: off).
+        split: name mixed into the pass seeds (``seed_rule="hash"``).
 
     Returns:
-        dict with ``radiance`` float32 [N, H, W, 3] linear; with ``settings.gt``: ``depth`` [N, H, W] metres along −z_cam
-        (0 = miss), ``normal`` [N, H, W, 3] world, ``albedo`` [N, H, W, 3] linear, ``roughness``, ``metallic``
-        [N, H, W], ``semantic``, ``metal`` uint8 [N, H, W]; plus ``variant``, ``scene_meta``, ``seconds``.
+        dict with ``radiance`` float32 [N, H, W, 3] linear, ``spp`` int [N], ``noise_db`` [N] (NaN with one pass);
+        with ``settings.gt``: ``depth`` [N, H, W] metres along −z_cam (0 = miss), ``normal`` [N, H, W, 3] world,
+        ``albedo`` [N, H, W, 3] linear, ``roughness``, ``metallic`` [N, H, W], ``semantic``, ``metal`` uint8
+        [N, H, W]; plus ``variant``, ``scene_meta``, ``seconds``.
     """
     import tempfile
 
-    from tqdm import tqdm
-
-    settings = settings or RenderSettings()
+    settings = replace(settings or RenderSettings(), spp=spp)
     cameras = np.asarray(cameras, dtype=np.float64).reshape(-1, 4, 4)
     if size < 1 or spp < 1:
         raise ConfigError(f"size={size} and spp={spp} must be positive")
     mi, dr, variant = import_mitsuba(settings.variant)
     t0 = time.time()
     with tempfile.TemporaryDirectory() as tmp:
-        built = build_scene(mi, scene_cfg, env, Path(workdir) if workdir else Path(tmp))
-    sensor = mi.load_dict({
-        "type": "perspective", "fov": math.degrees(fov_x), "fov_axis": "x",
-        "to_world": mi.ScalarTransform4f(c2w_to_mitsuba(cameras[0]).tolist()),
-        "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-        "sampler": {"type": settings.sampler, "sample_count": spp},
-    })
-    integrator = mi.load_dict({"type": "path", "max_depth": settings.max_depth, "hide_emitters": False})
-    params = mi.traverse(sensor)
-    out: dict[str, Any] = {"radiance": np.zeros((len(cameras), size, size, 3), np.float32)}
-    gt_keys = {"depth": (np.float32, ()), "normal": (np.float32, (3,)), "albedo": (np.float32, (3,)), "roughness": (np.float32, ()),
-               "metallic": (np.float32, ()), "semantic": (np.uint8, ()), "metal": (np.uint8, ())}
-    if settings.gt:
-        for k, (dt, tail) in gt_keys.items():
-            out[k] = np.zeros((len(cameras), size, size) + tail, dt)
-    for i in tqdm(range(len(cameras)), desc=f"render ({variant}, {spp} spp)", disable=not settings.progress, file=sys.stderr):
-        params["to_world"] = mi.Transform4f(c2w_to_mitsuba(cameras[i]).tolist()) if not variant.startswith("scalar") else mi.ScalarTransform4f(c2w_to_mitsuba(cameras[i]).tolist())
-        params.update()
-        img = mi.render(built.scene, sensor=sensor, integrator=integrator, spp=spp, seed=settings.seed * 100003 + i)
-        out["radiance"][i] = np.array(img)[..., :3]
-        if settings.gt:
-            for k, v in render_gt(mi, dr, built, cameras[i], fov_x, size, settings.gt_subsamples).items():
-                out[k][i] = v
+        built = build_scene(mi, scene_cfg, env, Path(workdir) if workdir else Path(tmp), lamp_scale)
+    out = _render_built(mi, dr, built, cameras, size, fov_x, settings, split)
     out["variant"] = variant
     out["scene_meta"] = built.meta
     out["seconds"] = time.time() - t0
@@ -554,23 +338,103 @@ def render_views(
     return out
 
 
+# ------------------------------------------------------------------------------------------------- light probe (SH)
+CUBE_FACES = ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))
+
+
+def cube_pixel_solid_angles(n: int) -> np.ndarray:
+    """Exact solid angle of every pixel of an n x n cube-map face (90° field of view), float64 [n, n]; the six
+    faces sum to 4π. Uses ``Ω(x, y) = atan(xy / sqrt(1 + x² + y²))`` at the pixel corners (face plane at unit
+    distance, x, y ∈ [−1, 1])."""
+    e = np.linspace(-1.0, 1.0, n + 1)
+    X, Y = np.meshgrid(e, e, indexing="xy")
+    F = np.arctan(X * Y / np.sqrt(1.0 + X * X + Y * Y))
+    return np.abs(F[1:, 1:] - F[1:, :-1] - F[:-1, 1:] + F[:-1, :-1])
+
+
+def cube_face_cameras(point: np.ndarray) -> np.ndarray:
+    """Six OpenGL camera-to-world matrices at ``point`` looking along ±x, ±y, ±z (float64 [6, 4, 4])."""
+    point = np.asarray(point, np.float64)
+    return np.stack([look_at(point, point + np.asarray(d, np.float64), up=(0.0, 1.0, 0.0) if d[2] else (0.0, 0.0, 1.0)) for d in CUBE_FACES])
+
+
+def _delta_lamps_at(mi, dr, built: _Built, point: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(direction toward the lamp, irradiance rgb) of every point/spot emitter that sees ``point`` (Mitsuba's own
+    emitter query: intensity, spot falloff and 1/d²; occlusion by a shadow ray)."""
+    out = []
+    scalar = mi.variant().startswith("scalar")
+    for em in built.scene.emitters():
+        if not mi.has_flag(em.flags(), mi.EmitterFlags.DeltaPosition):
+            continue
+        it = dr.zeros(mi.Interaction3f) if scalar else dr.zeros(mi.Interaction3f, 1)
+        it.p = mi.Point3f(*[float(v) for v in point])
+        ds, spec = em.sample_direction(it, mi.Point2f(0.5, 0.5))
+        d = np.array(ds.d).reshape(-1)[:3]
+        e = np.array(spec).reshape(-1)[:3]
+        dist = float(np.array(ds.dist).reshape(-1)[0])
+        ray = mi.Ray3f(mi.Point3f(*[float(v) for v in point]), mi.Vector3f(*[float(v) for v in d]))
+        si = built.scene.ray_intersect(ray)
+        t = float(np.array(si.t).reshape(-1)[0]) if bool(np.array(si.is_valid()).reshape(-1)[0]) else math.inf
+        if t < dist * (1 - 1e-4) or not np.isfinite(e).all() or e.max() <= 0:
+            continue
+        out.append((d / np.linalg.norm(d), e))
+    return out
+
+
+def render_light_probe(mi, dr, built: _Built, point: np.ndarray, face: int, spp: int, settings: RenderSettings,
+                       latlong_size: tuple[int, int] = (64, 128)) -> dict[str, Any]:
+    """The incident radiance at ``point`` as SH (see the module docstring): cube map + delta lamps.
+
+    Returns:
+        dict with ``sh`` float64 [9, 3] (SPEC order, world frame), ``sh_cube`` (the cube map alone), ``latlong``
+        float32 [H, W, 3] SPEC lat-long panorama (delta lamps splatted), ``delta_lamps`` (count), ``seconds``.
+    """
+    import torch
+
+    from toolkit.sh import latlong_directions, latlong_solid_angles, sh_basis
+
+    t0 = time.time()
+    cams = cube_face_cameras(point)
+    res = _render_built(mi, dr, built, cams, face, math.pi / 2, replace(settings, spp=spp, gt=False, min_passes=1, max_passes=1,
+                                                                       target_noise_db=None, progress=False, seed_rule="hash"), "probe")
+    _, dirs, _ = pixel_rays(np.eye(4), math.pi / 2, face)  # same for all faces up to the rotation
+    omega = cube_pixel_solid_angles(face)
+    sh = np.zeros((9, 3))
+    all_d, all_l, all_w = [], [], []
+    for k, c2w in enumerate(cams):
+        d = (dirs[0].reshape(-1, 3) @ np.eye(3)) @ c2w[:3, :3].T
+        Y = sh_basis(torch.as_tensor(d)).numpy()
+        L = res["radiance"][k].reshape(-1, 3).astype(np.float64)
+        w = omega.reshape(-1)
+        sh += (Y * w[:, None]).T @ L
+        all_d.append(d), all_l.append(L), all_w.append(w)  # noqa: E702
+    sh_cube = sh.copy()
+    lamps = _delta_lamps_at(mi, dr, built, point)
+    for d, e in lamps:
+        sh += sh_basis(torch.as_tensor(d[None])).numpy()[0][:, None] * e[None, :]
+    # lat-long panorama: nearest cube texel per lat-long pixel centre, delta lamps splatted into their pixel
+    H, W = latlong_size
+    ll = latlong_directions(H, W, dtype=torch.float64).numpy().reshape(-1, 3)
+    D = np.concatenate(all_d)
+    Lall = np.concatenate(all_l)
+    best = np.zeros(len(ll), np.int64)
+    chunk = 4096
+    for s in range(0, len(ll), chunk):
+        best[s : s + chunk] = np.argmax(ll[s : s + chunk] @ D.T, axis=1)
+    pano = Lall[best].reshape(H, W, 3)
+    sa = latlong_solid_angles(H, W, dtype=torch.float64).numpy()
+    for d, e in lamps:
+        theta = math.acos(max(-1.0, min(1.0, d[2])))
+        phi = math.atan2(d[0], d[1]) % (2 * math.pi)
+        r, c = min(H - 1, int(theta / math.pi * H)), min(W - 1, int(phi / (2 * math.pi) * W))
+        pano[r, c] += e / sa[r, c]
+    return {"sh": sh, "sh_cube": sh_cube, "latlong": pano.astype(np.float32), "delta_lamps": len(lamps), "seconds": time.time() - t0}
+
+
 # ------------------------------------------------------------------------------------------------------- file output
-def _auto_exposure(radiance: np.ndarray, target: float = 0.42) -> float:
-    """Scale k with mean(sRGB(clip(k·radiance))) = target (bisection; the environment is the only light)."""
-    from toolkit.io import linear_to_srgb
-
-    lo, hi = 1e-3, 1e3
-    for _ in range(60):
-        mid = math.sqrt(lo * hi)
-        if float(linear_to_srgb(np.clip(radiance * mid, 0, 1)).mean()) < target:
-            lo = mid
-        else:
-            hi = mid
-    return math.sqrt(lo * hi)
-
-
 def _write_png(path: Path, image_hwc: np.ndarray, bits: int = 8) -> None:
-    """Like :func:`toolkit.io.write_png` (same value mapping) but with maximum zlib compression (smaller sample)."""
+    """Like :func:`toolkit.io.write_png` (same value mapping) but with maximum zlib compression (smaller files).
+    RGBA images are written as such (alpha from the fourth channel)."""
     import cv2
 
     from toolkit.io import atomic_write
@@ -580,6 +444,8 @@ def _write_png(path: Path, image_hwc: np.ndarray, bits: int = 8) -> None:
         img = (np.clip(np.nan_to_num(img), 0.0, 1.0) * (255 if bits == 8 else 65535) + 0.5).astype(np.uint8 if bits == 8 else np.uint16)
     if img.ndim == 3 and img.shape[2] == 3:
         img = img[..., ::-1]
+    elif img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., [2, 1, 0, 3]]
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(img), [cv2.IMWRITE_PNG_COMPRESSION, 9])
     if not ok:
         raise OSError(f"could not encode PNG for {path}")
@@ -587,18 +453,24 @@ def _write_png(path: Path, image_hwc: np.ndarray, bits: int = 8) -> None:
         f.write(buf.tobytes())
 
 
-def write_split(out_dir: Path, split: str, res: dict[str, Any], cameras: np.ndarray, header: dict[str, Any]) -> None:
-    """Write one split's images and ``transforms_<split>.json``."""
+def write_split(out_dir: Path, split: str, res: dict[str, Any], cameras: np.ndarray, header: dict[str, Any],
+                image_format: str = "rgb", write_hdr_files: bool = True, kinds: Sequence[str] | None = None) -> None:
+    """Write one split's images, ground-truth maps and ``transforms_<split>.json``."""
     from toolkit.io import linear_to_srgb, write_hdr, write_json
 
     write_png = _write_png
-
     frames = []
     for i in range(len(cameras)):
         stem = f"{split}/r_{i:03d}"
         rad = res["radiance"][i]
-        write_png(out_dir / f"{stem}.png", linear_to_srgb(np.clip(rad, 0, 1)))
-        write_hdr(out_dir / f"{stem}.hdr", rad)
+        srgb = linear_to_srgb(np.clip(rad, 0, 1))
+        if image_format == "rgba":
+            srgb = np.concatenate([srgb, np.ones_like(srgb[..., :1])], -1)  # alpha 255 everywhere
+        write_png(out_dir / f"{stem}.png", srgb)
+        frame: dict[str, Any] = {"file_path": f"{stem}.png", "transform_matrix": cameras[i].tolist()}
+        if write_hdr_files:
+            write_hdr(out_dir / f"{stem}.hdr", rad)
+            frame["radiance_path"] = f"{stem}.hdr"
         depth_mm = np.clip(np.round(res["depth"][i] * 1000.0), 0, 65535).astype(np.uint16)
         write_png(out_dir / f"{stem}_depth.png", depth_mm)
         n = res["normal"][i]
@@ -609,125 +481,305 @@ def write_split(out_dir: Path, split: str, res: dict[str, Any], cameras: np.ndar
         write_png(out_dir / f"{stem}_metallic.png", res["metallic"][i])
         write_png(out_dir / f"{stem}_semantic.png", res["semantic"][i])
         write_png(out_dir / f"{stem}_metal.png", res["metal"][i])
-        frames.append({
-            "file_path": f"{stem}.png", "transform_matrix": cameras[i].tolist(), "radiance_path": f"{stem}.hdr",
+        frame.update({
             "depth_file_path": f"{stem}_depth.png", "normal_path": f"{stem}_normal.png", "albedo_path": f"{stem}_albedo.png",
             "roughness_path": f"{stem}_roughness.png", "metallic_path": f"{stem}_metallic.png",
             "semantic_path": f"{stem}_semantic.png", "metal_path": f"{stem}_metal.png",
         })
+        if kinds is not None:
+            frame["view_kind"] = kinds[i]
+        if "spp" in res and not np.isnan(res["noise_db"][i]):
+            frame["spp"] = int(res["spp"][i])
+            frame["noise_psnr_db"] = round(float(res["noise_db"][i]), 2)
+        frames.append(frame)
     write_json(out_dir / f"transforms_{split}.json", {**header, "frames": frames})
 
 
-def noise_psnr(cfg: GalleryConfig, cameras: np.ndarray, env: Environment, size: int, fov_x: float, settings: RenderSettings) -> tuple[float, float]:
-    """PSNR (dB) between two renders with different seeds, on 8-bit sRGB, and seconds per view of one render."""
-    from dataclasses import replace
-
-    from toolkit.io import linear_to_srgb
-
+def noise_psnr(cfg: GalleryConfig, cameras: np.ndarray, env: Environment | None, size: int, fov_x: float, settings: RenderSettings,
+               lamp_scale: float = 1.0) -> tuple[float, float]:
+    """PSNR (dB) between two full renders with different seeds, on 8-bit sRGB, and seconds per view of one render."""
     t0 = time.time()
-    a = render_views(cfg, cameras, env, size, settings.spp, fov_x, replace(settings, gt=False, seed=settings.seed + 1000))["radiance"]
+    a = render_views(cfg, cameras, env, size, settings.spp, fov_x, replace(settings, gt=False, seed=settings.seed + 1000), lamp_scale=lamp_scale)
     secs = (time.time() - t0) / len(cameras)
-    b = render_views(cfg, cameras, env, size, settings.spp, fov_x, replace(settings, gt=False, seed=settings.seed + 2000))["radiance"]
-    q = lambda x: np.round(linear_to_srgb(np.clip(x, 0, 1)) * 255.0)  # noqa: E731
-    mse = float(((q(a) - q(b)) ** 2).mean())
-    return (10.0 * math.log10(255.0**2 / mse) if mse > 0 else float("inf")), secs
+    b = render_views(cfg, cameras, env, size, settings.spp, fov_x, replace(settings, gt=False, seed=settings.seed + 2000), lamp_scale=lamp_scale)
+    return psnr8(a["radiance"], b["radiance"]), secs
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    import argparse
+def settings_of(opts: RenderOptions, cfg: GalleryConfig, variant: str) -> RenderSettings:
+    """The path-tracing settings of a profile for a gallery (the sample keeps its integrator and seed rule)."""
+    sample = cfg.preset == "sample"
+    return RenderSettings(spp=opts.spp_per_pass, seed=opts.seed, max_depth=opts.max_depth, sampler=opts.sampler, variant=variant,
+                          gt_subsamples=opts.gt_subsamples, progress=opts.progress, integrator="path" if sample else "volpath",
+                          min_passes=opts.min_passes, max_passes=opts.max_passes, target_noise_db=opts.target_noise_db,
+                          seed_rule="sample" if sample else "hash")
+
+
+def calibrate_exposure(mi, dr, cfg: GalleryConfig, env: Environment, cameras: np.ndarray, fov: float, settings: RenderSettings,
+                       workdir: Path, textures: dict) -> dict[str, float]:
+    """Emitter scales so the lamps give ``lamp_share`` of the mean radiance and the mean sRGB is the target.
+
+    Returns:
+        dict with ``env_scale`` (multiplies the probe map), ``lamp_scale`` (multiplies every lamp), the preview means,
+        and the share and target actually used (lowered when more than :data:`MAX_CLIPPED` of the preview clips).
+    """
+    lt = cfg.lighting
+    prev = replace(settings, spp=16, gt=False, progress=False, min_passes=1, max_passes=1, target_noise_db=None, seed=settings.seed + 7)
+    cams = cameras[: min(8, len(cameras))]
+    env_reaches = daylight_reaches(cfg)
+    r_env = r_lamp = None
+    if env_reaches:
+        built = build_scene(mi, cfg, env, workdir, lamp_scale=0.0, textures=textures)
+        r_env = _render_built(mi, dr, built, cams, 48, fov, prev, "preview")["radiance"]
+    if lt.lamps:
+        built = build_scene(mi, cfg, None, workdir, lamp_scale=1.0, textures=textures)
+        r_lamp = _render_built(mi, dr, built, cams, 48, fov, prev, "preview")["radiance"]
+    m_env = float(r_env.mean()) if r_env is not None else 0.0
+    m_lamp = float(r_lamp.mean()) if r_lamp is not None else 0.0
+    if m_env <= 1e-9 and m_lamp <= 1e-9:
+        raise DarsError(f"gallery seed {cfg.seed}: the preview is black (no light reaches the cameras)")
+    share = lt.lamp_share if (m_env > 1e-9 and m_lamp > 1e-9) else (1.0 if m_lamp > 1e-9 else 0.0)
+    target = lt.target_mean_srgb
+    for _ in range(12):  # keep lamp hot spots from blowing out: at most MAX_CLIPPED of the preview pixels clip
+        a = (1.0 - share) / m_env if m_env > 1e-9 else 0.0
+        b = share / m_lamp if m_lamp > 1e-9 else 0.0
+        mix = (a * r_env if a else 0.0) + (b * r_lamp if b else 0.0)
+        k = _auto_exposure(np.asarray(mix), target)
+        clipped = float((np.asarray(mix) * k > 1.0).any(-1).mean())
+        if clipped <= MAX_CLIPPED:
+            break
+        if 0.0 < share < 1.0 and share > 0.15:
+            share *= 0.75
+        else:
+            target *= 0.9
+    return {"env_scale": k * a, "lamp_scale": k * b, "preview_mean_env": m_env, "preview_mean_lamps": m_lamp, "lamp_share": share,
+            "target_mean_srgb": target, "preview_clipped": clipped}
+
+
+MAX_CLIPPED = 0.02
+"""Largest fraction of preview pixels allowed to clip (any channel > 1): above it the lamps' share (then the target
+exposure) is lowered, so spot-lit paintings keep their texture."""
+
+
+def room_aabb(cfg: GalleryConfig) -> list[list[float]]:
+    """A tight box of the room (walls, floor, ceiling) padded by 5 cm so the surfaces lie inside it; the sample's
+    hand-set box for the sample."""
+    room = cfg.room
+    if cfg.preset == "sample":  # padded so the wall (y = y1) and the floor (z = 0) lie inside the box, not on its faces
+        return [[room.x[0] - 0.1, room.y[0] - 0.1, -0.1], [room.x[1] + 0.1, room.y[1] + 0.25, room.height + 0.2]]
+    top = room.height + (room.well_depth if room.ceiling else 0.0)
+    return [[room.x[0] - 0.05, room.y[0] - 0.05, -0.05], [room.x[1] + 0.05, room.y[1] + 0.05, top + 0.05]]
+
+
+def render_gallery(cfg: GalleryConfig, out_dir: str | Path, opts: RenderOptions = RenderOptions()) -> dict[str, Any]:
+    """Render a gallery (views, ground truth, light probe) into ``out_dir`` (``transforms_{train,test}.json`` and
+    images, loadable by :func:`toolkit.scene.load_scene`).
+
+    Returns:
+        summary dict: seconds per stage and in total, spp and noise statistics, exposure, SH.
+
+    Raises:
+        ConfigError: missing probe or Mitsuba; DarsError: a gallery whose cameras see no light.
+    """
+    import tempfile
 
     import torch
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", required=True, help="output directory")
-    ap.add_argument("--size", type=int, default=128)
-    ap.add_argument("--n-train", type=int, default=80)
-    ap.add_argument("--n-test", type=int, default=20)
-    ap.add_argument("--spp", type=int, default=400, help="samples per pixel (multijitter: use a square, e.g. 400)")
-    ap.add_argument("--sampler", default="multijitter", help="mitsuba sampler plugin (default: multijitter)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--fov", type=float, default=45.0, help="horizontal field of view, degrees")
-    ap.add_argument("--env", default=DEFAULT_ENV, help="SPEC lat-long .hdr/.exr, or 'sky' (random smooth SH sky)")
-    ap.add_argument("--env-rotate", type=float, default=0.0, metavar="DEG", help="rotate the environment about +z")
-    ap.add_argument("--env-tint", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("R", "G", "B"))
-    ap.add_argument("--env-scale", type=float, default=1.0, help="radiance scale on top of the automatic exposure")
-    ap.add_argument("--exposure", type=float, default=None, help="fixed exposure instead of the automatic one (mean sRGB 0.42)")
-    ap.add_argument("--variant", default=None, help="mitsuba variant (default: llvm_ad_rgb if libLLVM 19 exists, else scalar_rgb)")
-    ap.add_argument("--max-depth", type=int, default=8)
-    ap.add_argument("--force", action="store_true", help="overwrite an existing rendering in --out")
-    ap.add_argument("--noise-check", type=int, default=0, metavar="N",
-                    help="render N test views twice with different seeds, print the PSNR of the 8-bit sRGB images, and exit")
-    args = ap.parse_args(argv)
-
-    from toolkit.io import write_hdr
+    from toolkit.io import linear_to_srgb, write_hdr
     from toolkit.sh import fit_sh_probe
 
+    t_start = time.time()
+    out_dir = Path(out_dir)
+    mi, dr, variant = import_mitsuba(opts.variant)
+    settings = settings_of(opts, cfg, variant)
+    fov = math.radians(cfg.camera.fov_x_deg)
+    cams, kinds = {}, {}
+    for split, n in (("train", opts.n_train), ("test", opts.n_test)):
+        cams[split], kinds[split] = gallery_cameras(cfg, n, split)
+        check_cameras(cfg, cams[split])
+    env0 = environment_of(cfg)
+    seconds: dict[str, float] = {}
+    textures: dict = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        t0 = time.time()
+        if cfg.preset == "sample":
+            built0 = build_scene(mi, cfg, env0, work, textures=textures)
+            prev = _render_built(mi, dr, built0, cams["train"][:8], 48, fov, replace(settings, spp=16, gt=False, progress=False, seed=opts.seed + 7))
+            k = _auto_exposure(prev["radiance"], cfg.lighting.target_mean_srgb)
+            expo = {"env_scale": k, "lamp_scale": 0.0}
+        else:
+            expo = calibrate_exposure(mi, dr, cfg, env0, cams["train"], fov, settings, work, textures)
+        seconds["exposure"] = time.time() - t0
+        env_reaches = daylight_reaches(cfg)
+        env = Environment(latlong=env0.latlong * np.float32(expo["env_scale"]), rotate_z_deg=env0.rotate_z_deg, source=env0.source)
+        built = build_scene(mi, cfg, env if env_reaches else None, work, lamp_scale=expo["lamp_scale"], textures=textures)
+        res = {}
+        for split in ("train", "test"):
+            if len(cams[split]):
+                res[split] = _render_built(mi, dr, built, cams[split], opts.size, fov, replace(settings, progress=opts.progress), split, f"seed {cfg.seed} {split}")
+        seconds["radiance"] = sum(r["seconds_radiance"] for r in res.values())
+        seconds["gt"] = sum(r["seconds_gt"] for r in res.values())
+        point = probe_point(cfg)
+        probe = render_light_probe(mi, dr, built, point, opts.probe_face, opts.probe_spp, settings)
+        seconds["probe"] = probe["seconds"]
+        # the probe as used (exposure applied), queried from a scene holding it (also for closed rooms)
+        env_built = built if env_emitter_visible(cfg) else build_scene(mi, cfg, env, work, lamp_scale=0.0, textures=textures, env_emitter=True)
+        H, W = env.latlong.shape[:2]
+        sh_env = fit_sh_probe(torch.as_tensor(environment_as_used(mi, dr, env_built, 2 * H, 2 * W), dtype=torch.float64)).to_list()
+        env_used = environment_as_used(mi, dr, env_built, H, W)
+    t0 = time.time()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_hdr(out_dir / "env.hdr", env_used)
+    write_hdr(out_dir / "light.hdr", probe["latlong"])
+    f = focal_from_fov(fov, opts.size)
+    sh_point = [[float(v) for v in row] for row in probe["sh"]]
+    all_spp = np.concatenate([r["spp"] for r in res.values()])
+    all_noise = np.concatenate([r["noise_db"] for r in res.values()])
+    mean_srgb = float(np.mean([linear_to_srgb(np.clip(r["radiance"], 0, 1)).mean() for r in res.values()]))
+    noise = {"method": "per view: PSNR(mean of even passes, mean of odd passes) on 8-bit sRGB + 3.01 dB = estimated agreement of two full renders",
+             "target_db": opts.target_noise_db, "spp_per_pass": opts.spp_per_pass,
+             "spp_mean": float(all_spp.mean()), "spp_min": int(all_spp.min()), "spp_max": int(all_spp.max())}
+    if np.isfinite(all_noise).any():
+        fin = all_noise[np.isfinite(all_noise)]
+        noise.update({"psnr_db_mean": round(float(fin.mean()), 2), "psnr_db_min": round(float(fin.min()), 2),
+                      "psnr_db_p10": round(float(np.percentile(fin, 10)), 2)})
+    lamps_used = []
+    for lamp in cfg.lighting.lamps:
+        d = asdict(lamp)
+        d["power_used"] = lamp.power * expo["lamp_scale"]
+        lamps_used.append(d)
+    sample = cfg.preset == "sample"
+    render_block = {
+        "renderer": "mitsuba", "mitsuba_version": mi.__version__, "variant": variant, "profile": opts.profile,
+        "generator": GENERATOR_VERSION, "config_digest": cfg.digest(), "gallery_seed": cfg.seed, "preset": cfg.preset,
+        "integrator": f"{settings.integrator} (max_depth {opts.max_depth})", "sampler": opts.sampler, "pixel_filter": "box",
+        "spp": int(all_spp.max()) if sample else None, "seed": opts.seed, "noise": noise,
+        "env": env0.source, "env_rotate_deg": cfg.lighting.rotate_deg, "env_tint": list(cfg.lighting.tint), "env_reaches_room": env_reaches,
+        "exposure": expo["env_scale"] if sample else expo, "lamps": lamps_used, "mean_srgb": round(mean_srgb, 4),
+        "fov_x_deg": cfg.camera.fov_x_deg, "image_format": cfg.image_format, "gt_rules": GT_RULES.format(n=opts.gt_subsamples),
+        "skylight_radiance": daylight_radiance(env).tolist() if cfg.room.openings else None,
+        "sh_point": point.tolist(), "sh_probe": {"cube_face_px": opts.probe_face, "spp": opts.probe_spp, "delta_lamps": probe["delta_lamps"]},
+        "sh_definition": ("environment SH: fit_sh_probe of the loaded emitter queried on a 2x dense SPEC lat-long grid (the sample is "
+                          "an open corner lit only by it); sh_point: cube-map SH of the incident radiance at render.sh_point") if sample else
+                         ("SPEC SH of the incident radiance at render.sh_point (room centre, eye height): cube map of the rendered scene "
+                          "projected with exact pixel solid angles, plus point/spot lamps analytically; envmap light.hdr is that "
+                          "panorama (lamps splatted). sh_env: the HDR probe's own SH at the exposure used (env.hdr); it lights the "
+                          "room through the open top (seen directly) or through frosted skylights (diffusers of radiance "
+                          "E_up / pi, E_up its irradiance on an upward-facing surface: render.skylight_radiance)"),
+        "seconds": {k: round(v, 1) for k, v in seconds.items()},
+    }
+    if sample:
+        render_block.update({"spp": opts.spp_per_pass, "env_scale": 1.0, "exposure": expo["env_scale"]})
+    header: dict[str, Any] = {
+        "camera_angle_x": fov, "fl_x": f, "fl_y": f, "cx": opts.size / 2.0, "cy": opts.size / 2.0, "w": opts.size, "h": opts.size,
+        "sh": sh_env if sample else sh_point, "envmap": "env.hdr" if sample else "light.hdr", "depth_unit_scale_factor": 0.001,
+    }
+    if sample:
+        header["sh_point"] = sh_point
+    else:
+        header.update({"sh_env": sh_env, "probe_envmap": "env.hdr"})
+    if opts.box:
+        header["aabb"] = room_aabb(cfg)
+    header["render"] = render_block
+    header["scene"] = {"classes": CLASSES, "background_label": BACKGROUND, **built.meta, "config": cfg.to_dict()}
+    for split in ("train", "test"):
+        if split in res:
+            write_split(out_dir, split, res[split], cams[split], header, cfg.image_format, opts.write_hdr, kinds[split])
+    seconds["write"] = time.time() - t0
+    seconds["total"] = time.time() - t_start
+    summary = {"seed": cfg.seed, "profile": opts.profile, "seconds": {k: round(v, 1) for k, v in seconds.items()}, "noise": noise,
+               "exposure": expo, "mean_srgb": mean_srgb, "views": {s: len(c) for s, c in cams.items()}}
+    from toolkit.io import write_json
+
+    write_json(out_dir / "render_summary.json", summary)
+    return summary
+
+
+# --------------------------------------------------------------------------------------------------------------- CLI
+def main(argv: Sequence[str] | None = None) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--preset", choices=["sample", "procedural"], default=None,
+                    help="sample: the bundled sample (default without --seed); procedural: a gallery drawn from --seed (default with it)")
+    ap.add_argument("--seed", type=int, default=None, help="gallery seed (procedural), or the sample's texture/camera seed")
+    ap.add_argument("--out", help="output directory")
+    ap.add_argument("--profile", choices=sorted(PROFILES), default=None,
+                    help="render profile (default: sample for --preset sample, validation for --seed)")
+    ap.add_argument("--size", type=int, default=None)
+    ap.add_argument("--n-train", type=int, default=None)
+    ap.add_argument("--n-test", type=int, default=None)
+    ap.add_argument("--spp", type=int, default=None, help="samples per pixel of one pass")
+    ap.add_argument("--passes", type=int, nargs=2, default=None, metavar=("MIN", "MAX"), help="passes per view")
+    ap.add_argument("--target-noise", type=float, default=None, metavar="DB", help="add passes until two renders would agree at DB")
+    ap.add_argument("--sampler", default=None, help="mitsuba sampler plugin (default: multijitter)")
+    ap.add_argument("--render-seed", type=int, default=None, help="seed of the sampling noise")
+    ap.add_argument("--box", action="store_true", help="write a tight aabb of the room into the JSON")
+    ap.add_argument("--variant", default=None, help="mitsuba variant (default: llvm_ad_rgb if libLLVM 19 exists, else scalar_rgb)")
+    ap.add_argument("--force", action="store_true", help="overwrite an existing rendering in --out")
+    ap.add_argument("--print-config", action="store_true", help="print the gallery's config as JSON and exit")
+    ap.add_argument("--noise-check", type=int, default=0, metavar="N",
+                    help="render N test views twice (full passes, different seeds), print the PSNR of the 8-bit sRGB images, and exit")
+    args = ap.parse_args(argv)
+
+    preset = args.preset or ("procedural" if args.seed is not None else "sample")
+    if preset == "procedural" and args.seed is None:
+        ap.error("--preset procedural needs --seed")
+    cfg = random_gallery(args.seed) if preset == "procedural" else GalleryConfig.sample(args.seed or 0)
+    if args.print_config:
+        print(json.dumps(cfg.to_dict(), indent=1))
+        return 0
+    if not args.out:
+        ap.error("--out is required")
+    opts = PROFILES[args.profile or ("sample" if cfg.preset == "sample" else "validation")]
+    over = {"size": args.size, "n_train": args.n_train, "n_test": args.n_test, "spp_per_pass": args.spp, "sampler": args.sampler,
+            "seed": args.render_seed, "variant": args.variant}
+    opts = replace(opts, **{k: v for k, v in over.items() if v is not None})
+    if args.passes:
+        opts = replace(opts, min_passes=args.passes[0], max_passes=args.passes[1])
+    if args.target_noise is not None:
+        opts = replace(opts, target_noise_db=args.target_noise)
+    if args.box:
+        opts = replace(opts, box=True)
     out_dir = Path(args.out)
-    if (out_dir / "transforms_train.json").exists() and not args.force:
+    if (out_dir / "transforms_train.json").exists() and not args.force and not args.noise_check:
         print(f"error: {out_dir} already holds a rendering; pass --force to overwrite it", file=sys.stderr)
         return 2
-    variant = args.variant or default_variant()
-    print(f"mitsuba variant: {variant}", file=sys.stderr)
     try:
-        env = load_environment(args.env, args.env_rotate, tuple(args.env_tint), args.env_scale, args.seed)
+        if args.noise_check:
+            return _noise_check(cfg, opts, args.noise_check)
+        summary = render_gallery(cfg, out_dir, opts)
     except DarsError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    cfg = GalleryConfig(seed=args.seed)
-    fov = math.radians(args.fov)
-    train_cams = sample_cameras(args.n_train, args.seed * 2 + 1)
-    test_cams = sample_cameras(args.n_test, args.seed * 2 + 2)
-    exposure = args.exposure
-    if exposure is None:
-        prev = render_views(cfg, train_cams[: min(8, len(train_cams))], env, 48, 16,
-                            fov, RenderSettings(seed=args.seed + 7, variant=variant, gt=False, progress=False))
-        exposure = _auto_exposure(prev["radiance"])
-        print(f"automatic exposure: x{exposure:.4f}", file=sys.stderr)
-    env = Environment(latlong=env.latlong * np.float32(exposure), rotate_z_deg=env.rotate_z_deg, source=env.source)
-    settings = RenderSettings(spp=args.spp, seed=args.seed, max_depth=args.max_depth, variant=variant, sampler=args.sampler)
-    if args.noise_check:
-        psnr, secs = noise_psnr(cfg, test_cams[: args.noise_check], env, args.size, fov, settings)
-        print(json.dumps({"noise_psnr_db": psnr, "views": args.noise_check, "spp": args.spp, "sampler": args.sampler,
-                          "seconds_per_view": secs}))
-        return 0
-    t0 = time.time()
-    res = {s: render_views(cfg, cams, env, args.size, args.spp, fov, settings) for s, cams in (("train", train_cams), ("test", test_cams))}
-    seconds = time.time() - t0
-    mi, dr = res["train"]["_mi"]
-    H, W = env.latlong.shape[:2]
-    dense = environment_as_used(mi, dr, res["train"]["_built"], 2 * H, 2 * W)
-    sh = fit_sh_probe(torch.as_tensor(dense, dtype=torch.float64)).to_list()  # GT: dense query of the emitter
-    out_dir.mkdir(parents=True, exist_ok=True)
-    write_hdr(out_dir / "env.hdr", environment_as_used(mi, dr, res["train"]["_built"], H, W))
-    f = focal_from_fov(fov, args.size)
-    meta = res["train"]["scene_meta"]
-    fx0, fx1, fy0, fy1 = cfg.floor_extent
-    header = {
-        "camera_angle_x": fov, "fl_x": f, "fl_y": f, "cx": args.size / 2.0, "cy": args.size / 2.0, "w": args.size, "h": args.size,
-        # padded so the wall (y = fy1) and the floor (z = 0) lie inside the box, not on its faces: a surface on a
-        # face competes with the background model for the rays that leave the box there
-        "aabb": [[fx0 - 0.1, fy0 - 0.1, -0.1], [fx1 + 0.1, fy1 + 0.25, cfg.wall_height + 0.2]],
-        "sh": sh, "envmap": "env.hdr", "depth_unit_scale_factor": 0.001,
-        "render": {
-            "renderer": "mitsuba", "mitsuba_version": mi.__version__, "variant": variant, "spp": args.spp, "seed": args.seed,
-            "integrator": f"path (max_depth {args.max_depth})", "sampler": args.sampler, "pixel_filter": "box",
-            "env": env.source, "env_rotate_deg": args.env_rotate, "env_tint": list(args.env_tint), "env_scale": args.env_scale,
-            "exposure": exposure, "fov_x_deg": args.fov, "seconds": round(seconds, 1),
-            "gt_rules": "depth/semantic/metal: one ray through the pixel centre; normal/albedo/roughness/metallic: mean of 4x4 "
-                        "stratified rays that hit; glass case: maps describe the first opaque surface seen through the clear panes, "
-                        "labelled 6 (other) if it is the sculpture, else 2 (display); normals world-space facing the camera, "
-                        "encoded (n+1)/2, 0 where nothing was hit; albedo is the linear principled base_color",
-        },
-        "scene": {"classes": CLASSES, "background_label": BACKGROUND, "materials": {
-            **{k: dict(v) for k, v in cfg.materials.items()},
-            "wall": {**cfg.materials["wall"], "base_color": list(cfg.wall_color)},
-            "frame": {**cfg.materials["frame"], "base_color": list(cfg.frame_color)},
-            "other": {**cfg.materials["other"], "base_color": list(cfg.sculpture_color)},
-        }, **meta, "config": {k: v for k, v in asdict(cfg).items() if k != "materials"}},
-    }
-    for split in ("train", "test"):
-        write_split(out_dir, split, res[split], train_cams if split == "train" else test_cams, header)
-    print(f"wrote {args.n_train} + {args.n_test} views to {out_dir} in {seconds:.1f} s ({variant}, {args.spp} spp)", file=sys.stderr)
+    print(json.dumps(summary), file=sys.stdout)
+    print(f"wrote {opts.n_train} + {opts.n_test} views of {'the sample' if cfg.preset == 'sample' else f'gallery seed {cfg.seed}'} to "
+          f"{out_dir} in {summary['seconds']['total']:.1f} s ({opts.profile})", file=sys.stderr)
+    return 0
+
+
+def _noise_check(cfg: GalleryConfig, opts: RenderOptions, n: int) -> int:
+    """Two full renders (each at the spp the profile gives a view: ``max_passes`` passes) with different seeds."""
+    import tempfile
+
+    mi, dr, variant = import_mitsuba(opts.variant)
+    settings = settings_of(opts, cfg, variant)
+    fov = math.radians(cfg.camera.fov_x_deg)
+    cams, _ = gallery_cameras(cfg, n, "test")
+    env0 = environment_of(cfg)
+    with tempfile.TemporaryDirectory() as tmp:
+        if cfg.preset == "sample":
+            prev = render_views(cfg, sample_front_cameras(8, cfg.seed * 2 + 1), env0, 48, 16, fov,
+                                replace(settings, gt=False, progress=False, seed=opts.seed + 7))
+            expo = {"env_scale": _auto_exposure(prev["radiance"], cfg.lighting.target_mean_srgb), "lamp_scale": 0.0}
+        else:
+            expo = calibrate_exposure(mi, dr, cfg, env0, gallery_cameras(cfg, 8, "train")[0], fov, settings, Path(tmp), {})
+    env_reaches = daylight_reaches(cfg)
+    env = Environment(latlong=env0.latlong * np.float32(expo["env_scale"]), rotate_z_deg=env0.rotate_z_deg, source=env0.source) if env_reaches else None
+    full = replace(settings, spp=opts.spp_per_pass * opts.max_passes, min_passes=1, max_passes=1, target_noise_db=None, gt=False)
+    psnr, secs = noise_psnr(cfg, cams, env, opts.size, fov, full, expo["lamp_scale"])
+    print(json.dumps({"noise_psnr_db": psnr, "views": n, "spp": full.spp, "sampler": opts.sampler, "seconds_per_view": secs,
+                      "gallery_seed": cfg.seed, "preset": cfg.preset}))
     return 0
 
 

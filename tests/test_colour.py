@@ -270,10 +270,15 @@ def test_cli_read_only_scene_and_foreign_files(tmp_path, capsys):
     out_dir.mkdir()
     (out_dir / "colour.json").write_text("{\"user\": true}")
     rc, out, err = _run(["priors", "colour", str(scene), "--out", str(out_dir)], capsys)
-    assert rc == 2 and "refusing to overwrite" in err and "colour.json" in err and "--force" in err
+    assert rc == 2 and "refusing to write" in err and "colour.json" in err and "--force" in err
     assert json.loads((out_dir / "colour.json").read_text()) == {"user": True}
     rc, out, err = _run(["priors", "colour", str(scene), "--out", str(out_dir), "--force"], capsys)
+    assert rc == 2 and "never overwrites your files" in err  # --force writes beside a user's file, never over it
+    assert json.loads((out_dir / "colour.json").read_text()) == {"user": True}
+    (out_dir / "colour.json").rename(out_dir / "my_colour.json")
+    rc, out, err = _run(["priors", "colour", str(scene), "--out", str(out_dir), "--force"], capsys)
     assert rc == 0 and "images" in json.loads((out_dir / "colour.json").read_text())
+    assert json.loads((out_dir / "my_colour.json").read_text()) == {"user": True}
     # our own files are overwritten freely on the next run
     rc, out, err = _run(["priors", "colour", str(scene), "--out", str(out_dir)], capsys)
     assert rc == 0, err

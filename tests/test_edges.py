@@ -363,7 +363,7 @@ def test_cli_weights_read_only_scene_suggests_out(tmp_path, capsys):
     assert rc == 2 and "read-only" in err and "--out DIR" in err
     assert not (scene / "priors").exists()
     rc, out, err = _run(["priors", "weights", str(scene), "--alpha", "-1", "--out", str(tmp_path / "o")], capsys)
-    assert rc == 2 and "alpha=-1.0 is out of range" in err
+    assert rc == 2 and "--alpha: must be ≥ 0" in err  # checked while parsing, named as typed
 
 
 def test_smoothing_of_a_line_known_value_and_renormalise():
@@ -388,7 +388,7 @@ def test_priors_weights_python_api(tmp_path):
     scene = load_scene(write_scene(tmp_path / "scene", n_train=2, n_test=1, size=24), "train")
     s = priors_weights(scene, tmp_path / "w", WeightMapConfig(lambda_reg=0.5), labels="scene")
     assert s["config"]["lambda_reg"] == 0.5 and len(s["images"]) == 2
-    assert (tmp_path / "w" / "train__r_001.npy").is_file() and (tmp_path / "w" / "manifest.json").is_file()
+    assert (tmp_path / "w" / "train__r_001.npy").is_file() and (tmp_path / "w" / "dars_manifest.json").is_file()
     with pytest.raises(DarsError, match="no scene labels"):
         priors_weights(load_scene(write_scene(tmp_path / "bare", 1, 1, 16, with_labels=False), "train"),
                        tmp_path / "w2", labels="scene")

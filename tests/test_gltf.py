@@ -273,6 +273,7 @@ def _ring_cameras(n=8, dist=2.5, size=48, focal=50.0):
 @pytest.fixture
 def fake_field(monkeypatch):
     """A stand-in for toolkit.train.run.load_field_callables: a sphere with a colourful material."""
+    import toolkit.train.folder
     import toolkit.train.run
 
     def load_field_callables(run_dir):
@@ -281,6 +282,8 @@ def fake_field(monkeypatch):
         return density, material_fn, aabb, torch.as_tensor(SH), _ring_cameras()
 
     monkeypatch.setattr(toolkit.train.run, "load_field_callables", load_field_callables)
+    # the commands check RUN before any work; the stand-in's RUN is an empty folder
+    monkeypatch.setattr(toolkit.train.folder, "find_run", lambda run_dir, checkpoint=None: ({}, Path(run_dir)))
     return load_field_callables
 
 
@@ -318,6 +321,6 @@ def test_cli_errors_are_clear(monkeypatch, tmp_path, capsys):
     assert main(["export-asset", str(tmp_path / "run"), "--out", str(tmp_path / "o")]) == 2
     assert "is not a training run" in capsys.readouterr().err
     assert main(["export-asset", str(tmp_path / "run"), "--out", str(tmp_path / "o"), "--texture", "3"]) == 2
-    assert "--texture 3 must be ≥ 16" in capsys.readouterr().err  # checked before the run is loaded
+    assert "--texture: must be ≥ 16, got 3" in capsys.readouterr().err  # checked while parsing
     assert main(["mesh", str(tmp_path / "nope")]) == 2
     assert "RUN directory not found" in capsys.readouterr().err

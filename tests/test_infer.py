@@ -86,6 +86,90 @@ def test_rays_and_camera_reader_match_torch():
         assert np.allclose(got[k], getattr(ref, k).numpy(), atol=2e-6, rtol=1e-6), k
 
 
+@pytest.mark.parametrize("near_far", [(None, None), (0.5, 40.0)])
+def test_contracted_rays_run_to_the_far_radius(near_far):
+    """A contracted space: rays end on the far-radius box (and within the scene's near/far when it has them)."""
+    from toolkit.scene import generate_rays, load_scene
+    from toolkit.space import SceneSpace
+
+    sc = load_scene(SAMPLE, "test")
+    cam = infer.camera_from_transforms(SAMPLE / "transforms_test.json", 2)
+    near, far = near_far
+    ref = generate_rays(sc.cameras, [2], aabb=SceneSpace(sc.aabb, True, 16.0), near=near, far=far)
+    got = infer.generate_camera_rays(cam, infer.SceneSpace(sc.aabb.numpy(), True, 16.0), near, far)
+    for k in ("origins", "directions", "near", "far", "z_scale"):
+        assert np.allclose(got[k], getattr(ref, k).numpy(), atol=2e-6, rtol=1e-6), k
+    if far is None:  # every ray leaves through the far-radius box: radius 16 at its far end
+        ends = got["origins"] + got["far"][:, None] * got["directions"]
+        assert np.allclose(infer.box_radius(ends, sc.aabb.numpy()), 16.0, rtol=1e-5)
+
+
+def _rays_inside_and_outside(g, aabb, R):
+    """Rays from inside the box, just outside it, far outside (beyond the far radius: some miss), pointing
+    anywhere; bounds from the far-radius box as the toolkit sets them."""
+    lo, hi = aabb
+    o = lo + torch.rand(R, 3, generator=g) * (hi - lo)
+    o[R // 3: 2 * R // 3] = (o[R // 3: 2 * R // 3] - aabb.mean(0)) * 3 + aabb.mean(0)
+    o[2 * R // 3:] = (o[2 * R // 3:] - aabb.mean(0)) * 120 + aabb.mean(0)
+    d = torch.nn.functional.normalize(torch.randn(R, 3, generator=g), dim=-1)
+    d[:4] = torch.tensor([[1.0, 0, 0], [0, -1.0, 0], [0, 0, 1.0], [0, 0, -1.0]])  # axis-aligned
+    return o, d
+
+
+def test_space_from_metadata_old_bundles_are_bounded():
+    box = [[-1.0, -2.0, 0.0], [1.0, 2.0, 3.0]]
+    old = infer.SceneSpace.from_metadata({"aabb": box})  # exported before unbounded scenes
+    assert not old.contraction and np.array_equal(old.ray_box, np.asarray(box, np.float32))
+    new = infer.SceneSpace.from_metadata({"aabb": box, "space": {"aabb": box, "contraction": True, "far_radius": 8.0,
+                                                                 "edge_candidates": 32}})
+    assert new.contraction and new.far_radius == 8.0 and new.edge_candidates == 32
+    assert np.allclose(new.ray_box, [[-8.0, -16.0, -10.5], [8.0, 16.0, 13.5]])
+
+
+def test_contraction_mirror_matches_torch_exactly():
+    from toolkit.space import box_radius, contract
+
+    g = torch.Generator().manual_seed(3)
+    aabb = torch.tensor([[-3.1, -3.6, -0.1], [3.1, 1.25, 2.8]])
+    pts = aabb.mean(0) + torch.randn(5000, 3, generator=g) * torch.exp(torch.randn(5000, 1, generator=g) * 2)
+    assert np.array_equal(infer.contract(pts.numpy(), aabb.numpy()), contract(pts, aabb).numpy())
+    assert np.array_equal(infer.box_radius(pts.numpy(), aabb.numpy()), box_radius(pts, aabb).numpy())
+    assert np.abs(infer.contract(pts.numpy(), aabb.numpy())).max() < 2.0
+
+
+@pytest.mark.parametrize("n", [64, 48])
+def test_contracted_edges_match_torch(n):
+    """The numpy mirror of toolkit.space.contracted_edges (perturb=False) on rays inside and outside the box. Not
+    bit-exact: torch's float32 pow (SLEEF, within 1 ulp) and its vectorised linspace round a few table depths
+    differently; the edges then agree to a few 1e-7 relative (measured: max 5e-6 at the far end of rays that
+    start near the box)."""
+    from toolkit.space import SceneSpace, contracted_edges
+
+    g = torch.Generator().manual_seed(4)
+    aabb = torch.tensor([[-3.1, -3.6, -0.1], [3.1, 1.25, 2.8]])
+    sp = SceneSpace(aabb, True, 64.0)
+    o, d = _rays_inside_and_outside(g, aabb, 3000)
+    near, far = sp.ray_bounds(o, d)
+    near[5], far[5] = 2.0, 2.0  # a zero-length ray
+    assert bool((far <= near).any()) and bool((far > near).any()), "need rays that miss the far box and some that hit"
+    ref = contracted_edges(o, d, near, far, sp, n, perturb=False).numpy()
+    got = infer.contracted_edges(o.numpy(), d.numpy(), near.numpy(), far.numpy(), aabb.numpy(), n)
+    assert got.shape == ref.shape == (3000, n + 1) and got.dtype == np.float32
+    assert np.all(np.abs(got - ref) <= 1e-5 * np.maximum(1.0, np.abs(ref))), np.abs(got - ref).max()
+    assert (got == ref).mean() > 0.7, "most edges are bit-identical"
+    hit = (far > near).numpy()
+    assert np.array_equal(got[:, 0], np.where(hit, near.numpy(), np.maximum(far.numpy(), near.numpy())))
+    assert np.allclose(got[hit, -1], far.numpy()[hit], rtol=1e-5) and np.all(np.diff(got, axis=1) >= 0)
+    # uniform in contracted arc length (up to the arc-length table's chords): strata span ~equal contracted lengths
+    cpts = infer.contract(o.numpy()[:, None] + got[..., None] * d.numpy()[:, None], aabb.numpy())
+    seg = np.linalg.norm(np.diff(cpts, axis=1), axis=-1)[hit]
+    assert np.quantile(np.abs(seg / seg.sum(1, keepdims=True) * n - 1.0), 0.99) < 0.1
+    # bounded: the plain stratification, unchanged (bit-exact where torch's linspace is: n a power of two)
+    bnd = infer.stratified_edges(o.numpy(), d.numpy(), near.numpy(), far.numpy(), infer.SceneSpace(aabb.numpy()), n)
+    ref = (near[:, None] + (torch.maximum(far, near) - near)[:, None] * torch.linspace(0.0, 1.0, n + 1)).numpy()
+    assert np.array_equal(bnd, ref) if n & (n - 1) == 0 else np.allclose(bnd, ref, rtol=1e-6)
+
+
 def test_sampler_and_compositing_match_torch():
     from toolkit.render import render_weights
     from toolkit.sampling import merge_samples, sample_fine
@@ -100,9 +184,10 @@ def test_sampler_and_compositing_match_torch():
     pdf = torch.rand(R, n, generator=g) * (torch.rand(R, n, generator=g) > 0.5)
     pdf[5] = 0.0  # all-zero row: uniform
     counts = torch.randint(0, 9, (R,), generator=g)
-    t_ref, r_ref = sample_fine(edges, pdf, counts, perturb=False)
-    t_got, r_got = infer._sample_fine(edges.numpy(), pdf.numpy(), counts.numpy())
+    t_ref, r_ref, k_ref = sample_fine(edges, pdf, counts, perturb=False, return_strata=True)
+    t_got, r_got, k_got = infer._sample_fine(edges.numpy(), pdf.numpy(), counts.numpy(), return_strata=True)
     assert np.array_equal(r_got, r_ref.numpy()) and np.allclose(t_got, t_ref.numpy(), atol=1e-6)
+    assert np.array_equal(k_got, k_ref.numpy())
     t_c = 0.5 * (edges[:, :-1] + edges[:, 1:])
     keep = torch.rand(R, n, generator=g) > 0.6
     ray_c, k_c = torch.nonzero(keep, as_tuple=True)
@@ -116,6 +201,13 @@ def test_sampler_and_compositing_match_torch():
     w_ref, _, _ = render_weights(dens, ps.deltas, ps.ray_indices, R)
     w_got = infer.render_weights(dens.numpy(), (s1 - s0), ri, R)
     assert np.allclose(w_got, w_ref.numpy(), atol=1e-6)
+    # contracted runs: per-sample longest intervals (each sample's own stratum)
+    sd = torch.rand(len(ray_c) + len(r_ref), generator=g) * 0.3
+    ps, order = merge_samples(t_c[ray_c, k_c], ray_c, t_ref, r_ref, R, max_delta, near, far, sample_max_delta=sd)
+    s0, s1, ri, order_np = infer._merge(t_c[ray_c, k_c].numpy(), ray_c.numpy(), t_got, r_got, max_delta.numpy(),
+                                        near.numpy(), far.numpy(), sd.numpy())
+    assert np.array_equal(order_np, order.numpy()) and np.array_equal(ri, ps.ray_indices.numpy())
+    assert np.allclose(s0, ps.t_starts.numpy(), atol=1e-6) and np.allclose(s1, ps.t_ends.numpy(), atol=1e-6)
 
 
 def test_background_and_occupancy_match_torch(bundle):
@@ -137,6 +229,14 @@ def test_background_and_occupancy_match_torch(bundle):
     lo, hi = run.occupancy.aabb
     pts = lo - 0.1 + torch.rand(20000, 3, generator=g) * (hi - lo + 0.2)
     assert np.array_equal(m.occupied(pts.numpy()), run.occupancy.occupied(pts).numpy())
+    assert m.occupancy_contraction == run.occupancy.contraction and m.space.contraction == run.field.cfg.contraction
+    if run.occupancy.contraction:  # the shell beyond the box, out past the far radius (empty there)
+        r = torch.exp(torch.rand(20000, 1, generator=g) * np.log(1.5 * run.occupancy.far_radius))
+        d = torch.nn.functional.normalize(torch.randn(20000, 3, generator=g), dim=-1)
+        far_pts = ((lo + hi) / 2 + d * r * (hi - lo)).numpy()
+        got = m.occupied(far_pts)
+        assert np.array_equal(got, run.occupancy.occupied(torch.from_numpy(far_pts)).numpy())
+        assert got.any() and not got[infer.box_radius(far_pts, m.aabb) > run.occupancy.far_radius].any()
 
 
 def test_relighting_through_sh_input(bundle):
@@ -168,7 +268,7 @@ def test_missing_files_give_clear_messages(bundle, tmp_path):
     with pytest.raises(infer.InferError, match="precision='bf16'"):
         infer.load_model(partial, "bf16")
     (partial / "background.npz").write_bytes(b"not a zip")
-    with pytest.raises(infer.InferError, match="could not read the export"):
+    with pytest.raises(infer.InferError, match=r"background.npz is truncated or corrupt \(ValueError: not an .npz"):
         infer.load_model(partial)
     (partial / "segment.onnx").unlink()
     with pytest.raises(infer.InferError, match="segment.onnx not found.*dars priors segment"):

@@ -293,7 +293,7 @@ def test_cli_light_on_sample(tmp_path, capsys):
     assert torch.allclose(per.mean(0), coeffs, atol=1e-5)
     ev = d["evaluation"]
     assert ev["env_light_l2"] < ev["baseline_mean_colour"] and ev["env_light_l2"] < ev["baseline_train_mean_sh"], ev
-    assert "light.json" in json.loads((out_dir / "manifest.json").read_text())["files"]
+    assert "light.json" in json.loads((out_dir / "dars_manifest.json").read_text())["files"]
     # JSON mode: only JSON on stdout; median; a second run may overwrite its own file
     rc, out, err = _run(["priors", "light", str(SAMPLE), "--out", str(out_dir), "--json", "--reduce", "median",
                          "--split", "test"], capsys)
@@ -319,7 +319,8 @@ def test_cli_light_without_gt_and_bad_inputs(tmp_path, capsys):
     (scene / "priors" / "light2" / "light.json").write_text("{}")  # the user's file
     rc, out, err = _run(["priors", "light", str(scene), "--weights", str(w), "--out", str(scene / "priors" / "light2")],
                         capsys)
-    assert rc == 2 and "refusing to overwrite" in err
+    assert rc == 2 and "refusing to write" in err and "light.json" in err
+    assert (scene / "priors" / "light2" / "light.json").read_text() == "{}"
     rc, out, err = _run(["priors", "light", str(tmp_path / "nowhere"), "--weights", str(w)], capsys)
     assert rc == 2 and "nowhere" in err
 

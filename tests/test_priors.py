@@ -76,12 +76,16 @@ def test_output_dir_keeps_user_files(bare, tmp_path):
     out = tmp_path / "o"
     out.mkdir()
     (out / "mine.txt").write_text("user")
-    with pytest.raises(DarsError, match="refusing to overwrite files dars did not write"):
-        prepare_out_dir(bare, "weights", out, ["mine.txt"])
-    d = prepare_out_dir(bare, "weights", out, ["ours.txt"])
+    with pytest.raises(DarsError, match="not empty .*mine.txt.* --force"):  # not a dars folder
+        prepare_out_dir(bare, "weights", out, ["ours.txt"])
+    with pytest.raises(DarsError, match="holds mine.txt, which dars did not write"):  # never over a user file
+        prepare_out_dir(bare, "weights", out, ["mine.txt"], force=True)
+    d = prepare_out_dir(bare, "weights", out, ["ours.txt"], force=True)  # beside it
     d.file("ours.txt").write_text("dars")
     d.finish()
-    assert json.loads((out / "manifest.json").read_text())["files"] == ["ours.txt"]
+    man = json.loads((out / "dars_manifest.json").read_text())
+    assert man["files"] == ["ours.txt"] and man["dars"] == "priors weights"
+    assert (out / "mine.txt").read_text() == "user"
     assert isinstance(prepare_out_dir(bare, "weights", out, ["ours.txt"]), OutputDir)  # ours: may be rewritten
 
 

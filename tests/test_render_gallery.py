@@ -324,3 +324,279 @@ def test_sample_sh_equals_projection_of_envmap():
     assert (sh[0] > 0).all()
     torch.testing.assert_close(fresh, sh, atol=0.02 * float(sh[0].max()), rtol=0)
     assert _load_split("test")["sh"] == meta["sh"]
+
+
+# ================================================================================================ procedural galleries
+import procedural as pg  # noqa: E402  (samples/ is on sys.path once render_gallery is loaded)
+import galleries  # noqa: E402
+
+needs_probes = pytest.mark.skipif(not (rg.ENVMAPS / "probulator_pisa_256x128.hdr").is_file(),
+                                  reason=f"HDR probes not found in {rg.ENVMAPS} (set DARS_ENVMAPS or DARS_SHARED_DATA)")
+TINY_SEED = 109
+"""A gallery whose tiny render (2 + 1 views at 24 px) shows paintings, walls, floor and metal, with RGBA PNGs, a
+glass-covered painting, a display case and lamps (checked in test_tiny_gallery_render)."""
+
+
+def test_random_gallery_is_deterministic_and_json_round_trips():
+    a, b = pg.random_gallery(7), pg.random_gallery(7)
+    assert a == b and json.dumps(a.to_dict(), sort_keys=True) == json.dumps(b.to_dict(), sort_keys=True)
+    assert a.digest() == b.digest() and pg.random_gallery(8).digest() != a.digest()
+    assert pg.random_gallery(8) != a
+    for cfg in (a, pg.GalleryConfig.sample(), pg.GalleryConfig.sample(3)):
+        assert pg.GalleryConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    cams_a, kinds_a = pg.gallery_cameras(a, 12, "train")
+    cams_b, kinds_b = pg.gallery_cameras(b, 12, "train")
+    np.testing.assert_array_equal(cams_a, cams_b)
+    assert kinds_a == kinds_b
+    with pytest.raises(ValueError, match="non-negative"):
+        pg.random_gallery(-1)
+
+
+def test_random_galleries_obey_the_constraints():
+    seen: dict[str, set] = {"frame": set(), "format": set(), "lamp": set(), "top": set(), "kind": set(), "floor": set()}
+    roughness = []
+    for seed in range(40):
+        cfg = pg.random_gallery(seed)
+        pg.check_config(cfg)  # closed room, sizes, paintings on their walls, objects inside and apart, lamps inside
+        room = cfg.room
+        for p in cfg.paintings:
+            roughness.append(p.canvas.roughness)
+            assert 0.5 <= p.canvas.roughness <= 0.95
+            assert {"gilt": 1.0, "wood": 0.0}.get(p.frame, p.frame_material.metallic) == p.frame_material.metallic
+            seen["frame"].add(p.frame)
+        seen["format"].add(cfg.image_format)
+        seen["lamp"] |= {lamp.kind for lamp in cfg.lighting.lamps}
+        seen["top"].add("skylights" if room.openings else ("closed" if room.ceiling else "open"))
+        seen["floor"].add(room.floor.texture_args[0])
+        train, kinds = pg.gallery_cameras(cfg, 30, "train")
+        test, _ = pg.gallery_cameras(cfg, 10, "test")
+        seen["kind"] |= set(kinds)
+        for cams in (train, test):
+            pg.check_cameras(cfg, cams)  # rigid, inside the room, >= 0.3 m from walls and object footprints
+            eyes = cams[:, :3, 3]
+            assert (eyes[:, 0] > room.x[0]).all() and (eyes[:, 0] < room.x[1]).all() and (eyes[:, 2] < room.height).all()
+            for box in pg.obstacle_boxes(cfg):
+                inside = ((eyes[:, :2] > box[0, :2]) & (eyes[:, :2] < box[1, :2])).all(1)
+                assert not inside.any(), f"seed {seed}: a camera stands inside an object"
+            np.testing.assert_allclose(cams[:, 2, 0], 0.0, atol=1e-9)  # no roll
+        walks = [c for c, k in zip(train, kinds) if k == "walk"]
+        assert all(1.3 <= c[2, 3] <= 1.8 for c in walks)
+        dist = np.linalg.norm(train[:, None, :3, 3] - test[None, :, :3, 3], axis=-1)
+        assert dist.min() > 1e-3, f"seed {seed}: a test camera repeats a train camera"
+    assert seen["frame"] == {"gilt", "wood", "glass"} and seen["format"] == {"rgb", "rgba"}
+    assert seen["lamp"] == {"spot", "point", "area"} and seen["top"] == {"skylights", "closed", "open"}
+    assert seen["kind"] == {"walk", "arc", "closeup"} and seen["floor"] == {"planks", "stone", "concrete", "carpet"}
+    assert np.std(roughness) > 0.08 and abs(np.mean(roughness) - 0.725) < 0.05  # drawn from U(0.5, 0.95), not 0.8
+
+
+def test_constraint_checks_reject_bad_configs():
+    from dataclasses import replace
+
+    cfg = pg.random_gallery(3)
+    p = cfg.paintings[0]
+    off = replace(cfg, paintings=(replace(p, center=(p.center[0] + 50.0, p.center[1])),) + cfg.paintings[1:])
+    with pytest.raises(ValueError, match="not on its wall"):
+        pg.check_config(off)
+    with pytest.raises(ValueError, match="roughness"):
+        pg.check_config(replace(cfg, paintings=(replace(p, canvas=replace(p.canvas, roughness=0.99)),) + cfg.paintings[1:]))
+    cams, _ = pg.gallery_cameras(cfg, 2, "train")
+    bad = cams.copy()
+    bad[0, :3, 3] = [cfg.room.x[0] + 0.05, np.mean(cfg.room.y), 1.5]  # 5 cm from a wall
+    with pytest.raises(ValueError, match="clearance"):
+        pg.check_cameras(cfg, bad)
+
+
+def test_sample_preset_reproduces_the_sample_geometry_and_cameras():
+    cfg = pg.GalleryConfig.sample()
+    names = [p.name for p in pg.scene_parts(cfg)]
+    assert names == ["wall", "floor", "painting", "frame_top", "frame_bottom", "frame_left", "frame_right", "pedestal", "sculpture",
+                     "case_front", "case_back", "case_left", "case_right", "case_top"]
+    if not (SAMPLE / "transforms_train.json").is_file():
+        pytest.skip(f"sample scene not rendered at {SAMPLE}")
+    for split, n in (("train", 80), ("test", 20)):
+        meta = _load_split(split)
+        cams, _ = pg.gallery_cameras(cfg, n, split)
+        np.testing.assert_allclose(cams, [f["transform_matrix"] for f in meta["frames"]], atol=1e-12)
+    meta = _load_split("train")
+    got = rg.scene_meta(cfg)
+    for key in ("painting_corners", "frame_box", "pedestal_box", "case_box", "sculpture_center", "sculpture_box"):
+        np.testing.assert_allclose(got[key], meta["scene"][key], atol=1e-9, err_msg=key)
+    assert got["painting_plane"] == meta["scene"]["painting_plane"] and got["wall_plane"] == meta["scene"]["wall_plane"]
+
+
+@needs_mitsuba
+@needs_sample
+def test_sample_preset_ground_truth_equals_the_committed_maps():
+    """The scene the sample preset builds traces to the committed labels, metal masks and depths (bit for bit)."""
+    import tempfile
+
+    mi, dr, _ = rg.import_mitsuba(VARIANTS[-1])
+    meta = _load_split("test")
+    frame = meta["frames"][3]
+    cfg = pg.GalleryConfig.sample()
+    with tempfile.TemporaryDirectory() as tmp:
+        built = rg.build_scene(mi, cfg, rg.Environment(latlong=np.ones((8, 16, 3), np.float32)), Path(tmp))
+    gt = rg.render_gt(mi, dr, built, np.asarray(frame["transform_matrix"]), meta["camera_angle_x"], meta["w"], subsamples=1)
+    np.testing.assert_array_equal(gt["semantic"], _read(SAMPLE / frame["semantic_path"]))
+    np.testing.assert_array_equal(gt["metal"], _read(SAMPLE / frame["metal_path"]))
+    depth_mm = np.clip(np.round(gt["depth"] * 1000.0), 0, 65535).astype(np.uint16)
+    np.testing.assert_array_equal(depth_mm, _read(SAMPLE / frame["depth_file_path"]))
+
+
+def test_cube_pixel_solid_angles_cover_the_sphere():
+    for n in (1, 7, 32):
+        assert 6 * rg.cube_pixel_solid_angles(n).sum() == pytest.approx(4 * math.pi, rel=1e-12)
+    cams = rg.cube_face_cameras(np.array([1.0, 2.0, 3.0]))
+    forwards = -cams[:, :3, 2]
+    np.testing.assert_allclose(forwards, np.asarray(rg.CUBE_FACES, float), atol=1e-12)
+
+
+@needs_mitsuba
+@needs_probes
+def test_cube_map_sh_matches_the_probe_sh():
+    """The cube-map projection reproduces the environment's own SH when nothing occludes it (0.2 % of the DC term
+    at 16 px faces); in the sample's open corner the directions that escape see the probe itself, and the SH differs
+    from the probe's by ≤ 0.11 of the DC term (measured 0.10: the floor replaces the lower hemisphere and the wall a
+    slice of the +y side, which moves the z and y bands)."""
+    import tempfile
+
+    from toolkit.sh import fit_sh_probe, lookup_latlong, rotation_z
+
+    mi, dr, variant = rg.import_mitsuba(VARIANTS[-1])
+    env = rg.load_environment(str(rg.ENVMAPS / "probulator_pisa_256x128.hdr"), 30.0)
+    settings = rg.RenderSettings(variant=variant, integrator="path")
+    scene = mi.load_dict({"type": "scene", "env": {"type": "envmap", "bitmap": mi.Bitmap(rg._mitsuba_env_bitmap(env.latlong)),
+                                                   "to_world": mi.ScalarTransform4f().rotate([0, 0, 1], 30.0).rotate([1, 0, 0], 90)}})
+    empty = rg._Built(scene=scene, shapes=[], info=[], meta={})
+    ref = fit_sh_probe(torch.as_tensor(rg.environment_as_used(mi, dr, empty, 256, 512), dtype=torch.float64)).coeffs.numpy()
+    probe = rg.render_light_probe(mi, dr, empty, np.zeros(3), 16, 16, settings)
+    assert np.abs(probe["sh"] - ref).max() < 0.005 * ref[0].max()
+    assert probe["delta_lamps"] == 0 and probe["latlong"].shape == (64, 128, 3)
+    cfg = pg.GalleryConfig.sample()
+    point = pg.probe_point(cfg)
+    with tempfile.TemporaryDirectory() as tmp:
+        built = rg.build_scene(mi, cfg, env, Path(tmp))
+    face = 16
+    probe = rg.render_light_probe(mi, dr, built, point, face, 64, settings)
+    assert np.abs(probe["sh"] - ref).max() < 0.11 * ref[0].max()
+    # where the room occludes nothing the panorama is the probe: project both onto SH over the escaping directions only
+    from toolkit.sh import latlong_directions, latlong_solid_angles, sh_basis
+
+    d = latlong_directions(64, 128, dtype=torch.float64).numpy().reshape(-1, 3)
+    hit = rg._trace(mi, dr, built, np.broadcast_to(point, d.shape).copy(), d)
+    sky = hit["shape"] < 0
+    lookup = lookup_latlong(torch.as_tensor(env.latlong, dtype=torch.float64), torch.as_tensor(d[sky] @ rotation_z(30.0).numpy())).numpy()
+    w = (sh_basis(torch.as_tensor(d[sky])).numpy() * latlong_solid_angles(64, 128, dtype=torch.float64).numpy().reshape(-1)[sky, None])
+    sh_pano, sh_look = w.T @ probe["latlong"].reshape(-1, 3)[sky], w.T @ lookup
+    assert sky.mean() > 0.3 and np.abs(sh_pano - sh_look).max() < 0.03 * sh_look[0].max()
+
+
+@pytest.fixture(scope="module")
+def tiny_gallery(tmp_path_factory):
+    if not HAS_MITSUBA:
+        pytest.skip("mitsuba is not installed (pip install 'dars-toolkit[render]')")
+    if not (rg.ENVMAPS / "probulator_pisa_256x128.hdr").is_file():
+        pytest.skip(f"HDR probes not found in {rg.ENVMAPS} (set DARS_ENVMAPS or DARS_SHARED_DATA)")
+    out = tmp_path_factory.mktemp("gallery") / f"seed_{TINY_SEED}"
+    summary = rg.render_gallery(pg.random_gallery(TINY_SEED), out, rg.PROFILES["tiny"])
+    return out, summary
+
+
+def test_tiny_gallery_render(tiny_gallery):
+    from toolkit.scene import load_scene
+
+    out, summary = tiny_gallery
+    cfg = pg.random_gallery(TINY_SEED)
+    assert cfg.image_format == "rgba" and any(p.frame == "glass" for p in cfg.paintings) and any(p.case_half > 0 for p in cfg.pedestals)
+    labels, metal_px = set(), 0
+    for split, n in (("train", 2), ("test", 1)):
+        meta = json.loads((out / f"transforms_{split}.json").read_text())
+        assert "aabb" not in meta  # real captures carry no box
+        scene = load_scene(out, split)
+        assert len(scene) == n and tuple(scene.image_size) == (24, 24) and scene.sh is not None
+        assert np.asarray(meta["sh"]).shape == (9, 3) and np.asarray(meta["sh_env"]).shape == (9, 3)
+        assert meta["envmap"] == "light.hdr" and (out / "light.hdr").is_file() and (out / "env.hdr").is_file()
+        assert "incident radiance" in meta["render"]["sh_definition"] and len(meta["render"]["sh_point"]) == 3
+        assert pg.GalleryConfig.from_dict(meta["scene"]["config"]) == cfg
+        for frame in meta["frames"]:
+            import cv2
+
+            png = cv2.imread(str(out / frame["file_path"]), cv2.IMREAD_UNCHANGED)
+            assert png.shape == (24, 24, 4) and (png[..., 3] == 255).all()
+            sem = _read(out / frame["semantic_path"])
+            metal = _read(out / frame["metal_path"])
+            labels |= set(np.unique(sem).tolist())
+            metal_px += int((metal == 255).sum())
+            assert set(np.unique(metal).tolist()) <= {0, 255} and np.isin(sem[metal == 255], [1, 3, 6]).all()
+            depth = _read(out / frame["depth_file_path"])
+            assert ((depth > 0) == (sem != 255)).all()
+            assert frame["view_kind"] in ("walk", "arc", "closeup") and frame["spp"] == 8
+    assert {0, 4, 5} <= labels and labels <= {0, 1, 2, 3, 4, 5, 6, 255}
+    assert metal_px > 0  # gilt frames / metal exhibits in view
+    assert set(summary["seconds"]) >= {"exposure", "radiance", "gt", "probe", "total"}
+    assert np.isfinite(summary["noise"]["psnr_db_mean"])
+
+
+def test_room_aabb_encloses_room_and_cameras():
+    cfg = pg.random_gallery(TINY_SEED)
+    box = np.asarray(rg.room_aabb(cfg))
+    cams, _ = pg.gallery_cameras(cfg, 20, "train")
+    assert (cams[:, :3, 3] > box[0]).all() and (cams[:, :3, 3] < box[1]).all()
+    assert box[0, 2] < 0 < cfg.room.height < box[1, 2] and box[1, 0] - box[0, 0] < cfg.room.x[1] - cfg.room.x[0] + 0.2
+
+
+def test_gallery_cache_renders_once_and_atomically(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_render(cfg, out_dir, opts):
+        calls.append(cfg.seed)
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True)
+        (out_dir / "transforms_train.json").write_text("{}")
+        return {"seconds": {"total": 0.0}, "noise": {"spp_mean": 1, "spp_min": 1, "spp_max": 1}}
+
+    monkeypatch.setattr(rg, "render_gallery", fake_render)
+    monkeypatch.setitem(sys.modules, "render_gallery", rg)
+    d = galleries.ensure_gallery(5, "tiny", root=tmp_path)
+    assert d == tmp_path / "tiny" / "seed_5" and (d / "transforms_train.json").is_file() and calls == [5]
+    assert galleries.is_cached(5, "tiny", root=tmp_path)
+    assert galleries.ensure_gallery(5, "tiny", root=tmp_path) == d and calls == [5]  # cached: not rendered again
+    stamp = json.loads((d / "stamp.json").read_text())
+    stamp["hash"] = "0" * 16  # the generator changed
+    (d / "stamp.json").write_text(json.dumps(stamp))
+    assert not galleries.is_cached(5, "tiny", root=tmp_path)
+    galleries.ensure_gallery(5, "tiny", root=tmp_path)
+    assert calls == [5, 5] and galleries.is_cached(5, "tiny", root=tmp_path)
+    assert sorted(p.name for p in (tmp_path / "tiny").iterdir() if not p.name.startswith(".lock")) == ["seed_5"]  # no temp dirs left
+    monkeypatch.setenv("DARS_CACHE", str(tmp_path / "c"))
+    assert galleries.cache_root() == tmp_path / "c" / "galleries"
+
+
+def test_seed_lists_are_disjoint_and_validation_is_held_out():
+    assert len(galleries.VALIDATION_SEEDS) >= 8
+    assert not set(galleries.VALIDATION_SEEDS) & set(galleries.PRIOR_TRAIN_SEEDS)
+    assert galleries.parse_seeds("0-2,7", "prior") == [0, 1, 2, 7]
+    assert galleries.parse_seeds("all", "validation") == list(galleries.VALIDATION_SEEDS)
+    with pytest.raises(ValueError, match="held out"):
+        galleries.parse_seeds(str(galleries.VALIDATION_SEEDS[0]), "prior")
+    with pytest.raises(ValueError, match="unknown profile"):
+        galleries.config_hash(0, "nope")
+
+
+def test_procedural_assets():
+    from gallery_assets import canvas_texture, floor_texture, lathe_mesh, vase_profile
+
+    for style in ("strokes", "bands", "blocks", "portrait"):
+        img = canvas_texture(3, style, aspect=1.25, width=64)
+        assert img.shape == (80, 64, 3) and img.dtype == np.float32 and 0.0 <= img.min() and img.max() <= 1.0
+    for kind in ("planks", "stone", "concrete", "carpet"):
+        tex = floor_texture(kind, 1, (0.5, 0.4, 0.3), size=64)
+        assert tex.shape == (64, 64, 3) and 0.0 < tex.min() and tex.max() <= 1.0
+        if kind in ("concrete", "carpet"):  # tileable noise: the wrap-around step is like any neighbour step
+            for axis in (0, 1):
+                seam = np.abs(np.take(tex, 0, axis) - np.take(tex, -1, axis)).mean()
+                assert seam < 1.5 * np.abs(np.diff(tex, axis=axis)).mean() + 1e-3, kind
+    verts, faces, normals = lathe_mesh(*vase_profile(np.random.default_rng(0), 0.1, 0.3))
+    side = (verts[:, 2] > 0.02) & (verts[:, 2] < 0.28)
+    assert (np.sum(normals[side, :2] * verts[side, :2], 1) > 0).mean() > 0.95  # outward
+    assert faces.max() < len(verts) and np.linalg.norm(verts[:, :2], axis=1).max() <= 0.1 + 1e-6

@@ -309,8 +309,8 @@ def test_cli_segment_provided_and_builtin(tmp_path, capsys):
     assert (seg_dir / "train__r_000.png").is_file() and (seg_dir / "train__r_005_preview.png").is_file()
     info = json.loads((seg_dir / "segment.json").read_text())
     assert info["backend"] == "provided" and info["miou_heldout"] == 1.0
-    man = json.loads((seg_dir / "manifest.json").read_text())
-    assert man["tool"] == "dars" and "segment.json" in man["files"]
+    man = json.loads((seg_dir / "dars_manifest.json").read_text())
+    assert man["dars"] == "priors segment" and "segment.json" in man["files"]
 
     out_dir = tmp_path / "seg_builtin"
     rc, out, err = _run(["priors", "segment", str(scene), "--backend", "builtin", "--train-every", "2", "--steps", "20",

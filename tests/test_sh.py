@@ -406,10 +406,9 @@ def test_read_envmap_errors_name_the_file(tmp_path):
 
 # ---------------------------------------------------------------------------------------------------------------- CLI
 def _cli(argv):
-    from toolkit.cli import build_parser
+    from toolkit.cli import main
 
-    args = build_parser().parse_args(["priors", "sh-probe", *argv])
-    return args.func(args)
+    return main(["priors", "sh-probe", *argv])
 
 
 def _probe_file(tmp_path) -> Path:
@@ -428,13 +427,16 @@ def test_cli_json_output_and_file(tmp_path, capsys):
     assert np.asarray(doc["coeffs"]).shape == (9, 3)
     assert len(doc["threejs"]) == 27 and np.asarray(doc["gltf"]["irradianceCoefficients"]).shape == (9, 3)
     assert doc["layout"] == "latlong" and doc["file"] == str(path)
-    written = tmp_path / "probe.sh.json"
-    assert json.loads(written.read_text())["coeffs"] == doc["coeffs"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["probe.hdr"]  # nothing written beside the input
     np.testing.assert_allclose(doc["coeffs"], fit_sh_probe(read_envmap(path)).coeffs.numpy(), atol=1e-6)
+    written = tmp_path / "probe.sh.json"
+    assert _cli([str(path), "--json", "--out", str(written)]) == 0
+    assert json.loads(written.read_text())["coeffs"] == doc["coeffs"]
+    capsys.readouterr()
     # never overwrite without --force
-    assert _cli([str(path), "--json"]) == 2
+    assert _cli([str(path), "--json", "--out", str(written)]) == 2
     assert "exists" in capsys.readouterr().err
-    assert _cli([str(path), "--json", "--force"]) == 0
+    assert _cli([str(path), "--json", "--out", str(written), "--force"]) == 0
 
 
 def test_cli_table_out_rotation_and_errors(tmp_path, capsys):

@@ -178,19 +178,26 @@ def test_normal_losses_point_normals_out_of_the_surface():
 
 
 # ------------------------------------------------------------------------------------------------ room prior
-def test_scene_type_auto_room_for_the_gallery_object_for_lego(sample_scene_path):
-    """Cameras inside the box, opaque photos → room, with the layer on every face no camera comes near (the sample's
-    cameras reach the box top, so that face has none); cameras outside (the tiny synthetic scene) → object."""
+def test_scene_type_auto_unbounded_for_the_gallery_object_for_lego(sample_scene_path):
+    """Photos with no transparent pixel (the sample's RGBA PNGs are opaque everywhere; the tiny Lego's RGB on white)
+    → unbounded: contracted field; photos with real transparency (NeRF Lego's RGBA) → object, bounded. No room layer
+    in either (retired)."""
     from conftest import shared
-    from toolkit.train import ROOM_SHELL, resolve_config
+    from toolkit.train import resolve_config
+    from toolkit.train.config import photos_have_transparency
 
-    cfg = resolve_config(make_config("fast", steps=1), load_scene(sample_scene_path, "train"))
-    assert cfg.scene_type == "room" and cfg.field.shell == ROOM_SHELL
-    assert cfg.field.shell_faces == (True, True, True, True, True, False)
-    lego = resolve_config(make_config("fast", steps=1), load_scene(shared("tiny_lego", "tiny_lego_100.npz"), "train"))
-    assert lego.scene_type == "object" and lego.field.shell == 0.0
-    forced = resolve_config(make_config("fast", steps=1, scene_type="object"), load_scene(sample_scene_path, "train"))
-    assert forced.field.shell == 0.0
+    assert photos_have_transparency(load_scene(shared("nerf_synthetic", "lego"), "train"))
+    assert not photos_have_transparency(load_scene(sample_scene_path, "train"))
+
+    cfg, scene = resolve_config(make_config("fast", steps=1), load_scene(sample_scene_path, "train"))
+    assert cfg.scene_type == "unbounded" and cfg.field.contraction and cfg.field.shell == 0.0
+    assert scene.aabb is not None and cfg.scene_box_source
+    tiny, _ = resolve_config(make_config("fast", steps=1), load_scene(shared("tiny_lego", "tiny_lego_100.npz"), "train"))
+    assert tiny.scene_type == "unbounded" and tiny.field.contraction
+    forced, _ = resolve_config(make_config("fast", steps=1, scene_type="object"), load_scene(sample_scene_path, "train"))
+    assert forced.scene_type == "object" and not forced.field.contraction
+    room, _ = resolve_config(make_config("fast", steps=1, scene_type="room"), load_scene(sample_scene_path, "train"))
+    assert room.scene_type == "unbounded" and room.field.contraction and room.field.shell == 0.0
     with pytest.raises(ConfigError, match="scene_type"):
         make_config("fast", steps=1, scene_type="hall")
 
@@ -216,30 +223,6 @@ def test_room_layer_density_on_enabled_faces_only():
     assert "shell_weight" in fld.state_dict() and "shell_weight" not in DarsField(FieldConfig(), aabb).state_dict()
     with pytest.raises(ConfigError, match="shell"):
         FieldConfig(shell=0.7)
-
-
-def test_room_layer_fades_in_after_stage_a_and_the_background_restarts_dark(tmp_path):
-    """A room run: the layer is off in stage (a), fades in over SHELL_FADE of the run, and when it comes on the
-    learned environment (which stood in for the walls) is reset dark."""
-    from synthetic import make_scene as make
-    from toolkit.train import SHELL_FADE, init_state, prepare_data, resolve_config, train_step
-
-    scene = load_scene(make(tmp_path / "s", n_train=6, n_test=1, size=16), "train")
-    cfg = resolve_config(_small(steps=20, pretrain_fraction=0.5, scene_type="room"), scene)
-    assert cfg.field.shell > 0
-    data = prepare_data(scene, cfg, log=lambda m: None)
-    st = init_state(cfg, data)
-    with torch.no_grad():
-        st.background.raw.fill_(1.0)                               # an environment that stands in for bright walls
-    seen = []
-    for _ in range(20):
-        train_step(st, data)
-        seen.append((st.step, float(st.field.shell_weight), float(st.background.env_map().detach().mean())))
-        st.step += 1
-    assert all(w == 0.0 for s, w, _ in seen if s <= 10)          # progress ≤ pretrain_fraction: stage (a)
-    ramp = [w for s, w, _ in seen if s > 10]
-    assert ramp[0] == pytest.approx(0.05 / SHELL_FADE) and ramp == sorted(ramp) and ramp[-1] == 1.0
-    assert seen[11][2] < 0.1 * seen[10][2], "the environment restarts dark when the layer comes on"
 
 
 # ------------------------------------------------------------------------------------------------ photos in, memory
@@ -277,7 +260,7 @@ def test_training_on_photos_of_different_sizes(tiny, tmp_path):
     assert len(info["train_views"]) == 7 and 0.0 <= info["miou_heldout"] <= 1.0  # the 32x24 ones of every 2nd
     assert len(priors_light(sc, None)["per_image"]) == len(sc)
     priors_weights(sc, None)
-    train(scene, tmp_path / "r", _small(steps=30), progress_bar=False, log=lambda m: None)
+    train(scene, tmp_path / "r", _small(steps=30, labels="ground-truth"), progress_bar=False, log=lambda m: None)
     run = load_run(tmp_path / "r")
     assert run.weight_maps[0].shape == (32, 24) and run.weight_maps[1].shape == (20, 32)
     assert run.weight_maps[2].shape == (32, 32)

@@ -28,7 +28,7 @@ key                    definition (computed when ...)
                        normal ≠ 0). Needs GT normals.
 ``miou``               mean IoU over the 7 classes of the rendered semantics (argmax of the rendered logits, 255
                        where the rendered opacity < 0.5) against GT labels, pooled over views. Needs GT labels and a
-                       run trained with semantic guidance and labels.
+                       run trained with semantic input and labels.
 =====================  ===============================================================================================
 
 **The view-consistency patch.** A square of side ``size`` in a surface plane, projected into each view with
@@ -222,11 +222,16 @@ def _clean(obj):
 # ============================================================================ run description
 def variant_of(cfg) -> str:
     """Name of the Table 6 variant a :class:`~toolkit.train.TrainConfig` is (``full``, ``no_dars``, ``nerf``, ...);
-    ``custom`` for combinations that are not one of the six."""
+    ``no_semantics_legacy`` for a run saved before the semantic input and L_mat's class terms were separate switches
+    (its ``semantics=False`` removed both); ``custom`` for other combinations."""
     if cfg.shading == "radiance":
         return "nerf"
     off = [name for name, is_off in (("no_dars", not cfg.sampler.dars), ("no_semantics", not cfg.semantics),
-                                     ("fixed_light", cfg.fixed_light), ("no_mat_loss", cfg.losses.mat <= 0)) if is_off]
+                                     ("fixed_light", cfg.fixed_light), ("no_mat_loss", cfg.losses.mat <= 0),
+                                     ("no_mat_labels", not getattr(cfg, "mat_labels", True) and cfg.losses.mat > 0))
+           if is_off]
+    if off == ["no_semantics", "no_mat_labels"]:
+        return "no_semantics_legacy"
     return "full" if not off else off[0] if len(off) == 1 else "custom"
 
 
@@ -254,6 +259,7 @@ def training_info(run) -> dict:
         "seed": int(cfg.seed),
         "variant": variant_of(cfg),
         "switches": {"dars": bool(cfg.sampler.dars), "semantics": bool(cfg.semantics),
+                     "mat_labels": bool(cfg.mat_labels),
                      "fixed_light": bool(cfg.fixed_light), "mat_loss": bool(cfg.losses.mat > 0),
                      "baseline": "nerf" if cfg.shading == "radiance" else None, "shading": cfg.shading},
         "priors": priors,
@@ -500,7 +506,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     if "semantic" not in extras:
         unavailable["miou"] = f"split '{split}' has no ground-truth semantic labels ('semantic_path' on every frame)"
     elif not run.cfg.semantics or labels_src in ("off", "none", ""):
-        unavailable["miou"] = ("the run was trained without semantic supervision (semantic guidance off or no labels), "
+        unavailable["miou"] = ("the run was trained without semantic supervision (semantic input off or no labels), "
                                "so its semantic head is untrained")
 
     # ---- the view-consistency patch (may be chosen after the first render)

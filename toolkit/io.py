@@ -1,23 +1,24 @@
 """Image and file I/O: reading PNG/JPEG/HDR/EXR/NPY maps, atomic writes.
 
 Every writer in the toolkit goes through :func:`atomic_write` (write to a temporary file in the same
-directory, then ``os.replace``), so an interrupted run never leaves a half-written file in place of a good
-one, and nothing is written over a file the caller did not name.
+directory, then ``os.replace``; it lives in :mod:`toolkit.outputs` with the output-folder policy), so an interrupted
+run never leaves a half-written file in place of a good one, and nothing is written over a file the caller did not
+name. The readers turn a missing, empty, truncated or foreign file into a :class:`~toolkit._checks.DarsError` naming
+it (:func:`read_json`, :func:`load_torch`, :func:`read_image`, :func:`read_hdr` ...).
 """
 
 from __future__ import annotations
 
-import contextlib
 import io
 import json
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
 from ._checks import SceneError
+from .outputs import atomic_write
 
 __all__ = [
     "atomic_write",
@@ -29,32 +30,13 @@ __all__ = [
     "write_json",
     "write_hdr",
     "read_hdr",
+    "read_exr",
+    "read_json",
+    "load_torch",
+    "check_torch_file",
     "srgb_to_linear",
     "linear_to_srgb",
 ]
-
-
-@contextlib.contextmanager
-def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[io.IOBase]:
-    """Open a temporary file beside ``path`` and move it over ``path`` only when the block succeeds.
-
-    Example:
-        >>> with atomic_write("/tmp/x.txt", "w") as f:
-        ...     _ = f.write("hello")
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, mode) as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
 
 
 def save_torch(path: str | os.PathLike, payload: Any) -> Path:
@@ -69,6 +51,88 @@ def save_torch(path: str | os.PathLike, payload: Any) -> Path:
     with atomic_write(path) as f:
         f.write(buf.getvalue())
     return path
+
+
+def read_json(path: str | os.PathLike, what: str = "JSON file", fix: str = "", kind: type | None = dict) -> Any:
+    """Parse a JSON file, turning every failure into a :class:`~toolkit._checks.DarsError` that names the file.
+
+    Args:
+        path: the file.
+        what: what the file is, for messages (``"run config"``, ``"priors light.json"``).
+        fix: what to do about a bad file (appended to the message).
+        kind: the type the top level must have (``dict``, ``list``; None: any).
+
+    Raises:
+        DarsError: missing, unreadable, empty, not JSON, or another top-level type.
+    """
+    from ._checks import DarsError
+
+    path = Path(path)
+    tail = f"; {fix}" if fix else ""
+    if not path.is_file():
+        raise DarsError(f"{what} not found: {path}{tail}")
+    try:
+        text = path.read_bytes().decode("utf-8")
+        obj = json.loads(text)
+    except UnicodeDecodeError as e:
+        raise DarsError(f"{what} {path} is not a text file (not UTF-8 JSON){tail}") from e
+    except ValueError as e:
+        detail = "it is empty" if not text.strip() else f"invalid JSON: {e}"
+        raise DarsError(f"{what} {path} is corrupt ({detail}){tail}") from e
+    if kind is not None and not isinstance(obj, kind):
+        want = {dict: "an object {...}", list: "a list [...]"}.get(kind, kind.__name__)
+        raise DarsError(f"{what} {path}: expected {want} at the top level, got {type(obj).__name__}{tail}")
+    return obj
+
+
+def load_torch(path: str | os.PathLike, what: str = "checkpoint", fix: str = "", map_location: Any = "cpu",
+               weights_only: bool = False) -> Any:
+    """``torch.load`` that turns a missing, empty, truncated or foreign file into a
+    :class:`~toolkit._checks.DarsError` naming the file (``fix`` says what to do)."""
+    import torch
+
+    from ._checks import DarsError
+
+    path = Path(path)
+    check_torch_file(path, what, fix)
+    try:
+        return torch.load(path, map_location=map_location, weights_only=weights_only)
+    except MemoryError:
+        raise
+    except Exception as e:  # noqa: BLE001 - pickle, zip and torch raise many types for a damaged file
+        tail = f"; {fix}" if fix else ""
+        raise DarsError(f"{what} {path} is corrupt ({path.stat().st_size} bytes; {_short(e)}){tail}") from e
+
+
+def check_torch_file(path: str | os.PathLike, what: str = "checkpoint", fix: str = "") -> None:
+    """A quick look (no tensors read) that ``path`` is a complete ``torch.save`` file: present, not empty, and its zip
+    directory readable (a truncated file loses it). Lets a command refuse a damaged checkpoint before any work.
+
+    Raises:
+        DarsError: naming the file and ``fix``.
+    """
+    import zipfile
+
+    from ._checks import DarsError
+
+    path = Path(path)
+    tail = f"; {fix}" if fix else ""
+    if not path.is_file():
+        raise DarsError(f"{what} not found: {path}{tail}")
+    size = path.stat().st_size
+    if size == 0:
+        raise DarsError(f"{what} {path} is empty (0 bytes: the write was interrupted or the disk was full){tail}")
+    try:
+        with zipfile.ZipFile(path) as z:
+            z.namelist()
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as e:
+        raise DarsError(f"{what} {path} is truncated or corrupt ({size} bytes; {_short(e)}){tail}") from e
+
+
+def _short(e: BaseException) -> str:
+    """The first sentence of an exception's message (torch's run on for lines)."""
+    text = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    return text.split(". ")[0][:120]
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:
@@ -174,16 +238,37 @@ def write_png(path: str | os.PathLike, image_hwc: np.ndarray, bits: int = 8) -> 
 
 
 def read_hdr(path: str | os.PathLike) -> np.ndarray:
-    """Read a Radiance RGBE ``.hdr`` file to float32 H-W-3 linear RGB."""
+    """Read a Radiance RGBE ``.hdr`` file to float32 H-W-3 linear RGB.
+
+    Raises:
+        SceneError: missing, empty or undecodable file, or one that is not Radiance HDR (an 8-bit PNG or JPEG renamed
+            ``.hdr`` would otherwise decode to values in 0–255 with no light units), naming the file.
+    """
     cv2 = _cv2()
     path = Path(path)
     data = np.fromfile(path, dtype=np.uint8) if path.is_file() else np.zeros(0, np.uint8)
     if data.size == 0:
         raise SceneError(f"HDR image not found or empty: {path}")
+    head = data[:16].tobytes()
+    if not head.startswith((b"#?RADIANCE", b"#?RGBE")):
+        kind = _sniff_image_kind(head)
+        what = f"{kind}, 8-bit: no light units" if kind else "no #?RADIANCE header"
+        raise SceneError(f"{path} is not a Radiance HDR file ({what}); give a real .hdr or .exr environment map "
+                         "(e.g. convert the original capture), not a renamed photo")
     img = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
     if img is None:
-        raise SceneError(f"HDR image {path} could not be decoded (expected Radiance RGBE .hdr)")
+        raise SceneError(f"HDR image {path} could not be decoded (a truncated or corrupt Radiance .hdr); re-export it")
     return img[..., ::-1].astype(np.float32).copy()
+
+
+def _sniff_image_kind(head: bytes) -> str:
+    """What the first bytes of a file say it is, for messages ("" when they say nothing known)."""
+    for magic, name in ((b"\x89PNG", "it is a PNG image"), (b"\xff\xd8\xff", "it is a JPEG image"),
+                        (b"BM", "it is a BMP image"), (b"II*\x00", "it is a TIFF image"),
+                        (b"MM\x00*", "it is a TIFF image"), (b"v/1\x01", "it is an OpenEXR image")):
+        if head.startswith(magic):
+            return name
+    return ""
 
 
 def write_hdr(path: str | os.PathLike, image_hwc: np.ndarray) -> None:
@@ -198,10 +283,28 @@ def write_hdr(path: str | os.PathLike, image_hwc: np.ndarray) -> None:
 
 
 def read_exr(path: str | os.PathLike) -> np.ndarray:
-    """Read an OpenEXR file to float32 H-W-C (OpenCV 5 has no EXR codec: uses ``OpenEXR`` or Mitsuba)."""
+    """Read an OpenEXR file to float32 H-W-C (OpenCV 5 has no EXR codec: uses ``OpenEXR`` or Mitsuba).
+
+    Raises:
+        SceneError: missing, empty, truncated or not OpenEXR, naming the file.
+    """
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"EXR image not found: {path}")
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if not head.startswith(b"v/1\x01"):
+        kind = "it is empty" if not head else _sniff_image_kind(head) or "no OpenEXR magic number"
+        raise SceneError(f"{path} is not an OpenEXR file ({kind}); give a real .exr or .hdr environment map")
+    try:
+        return _read_exr(path)
+    except SceneError:
+        raise
+    except Exception as e:  # noqa: BLE001 - the EXR libraries raise generic errors for damaged files
+        raise SceneError(f"EXR image {path} could not be decoded ({e}); it may be truncated: re-export it") from e
+
+
+def _read_exr(path: Path) -> np.ndarray:
     try:
         import OpenEXR  # type: ignore
 

@@ -63,6 +63,10 @@ class LossWeights:
     colour_reg: float = 0.01
     compactness: float = 0.0
     """Ours (mip-NeRF 360's interval loss on contracted-space positions, :func:`compactness_loss`)."""
+    opacity: float = 0.0
+    """Ours: mean (1 − opacity) of the batch's rays — a room is closed, so a ray should end on a surface unless the
+    photo shows something no surface can (sky, a lamp): a textureless wall then becomes a surface instead of
+    learned environment."""
 
 
 def _wmean(x: torch.Tensor, iw: torch.Tensor | None) -> torch.Tensor:

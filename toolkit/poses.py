@@ -50,6 +50,7 @@ from typing import Callable, Literal
 import numpy as np
 
 from ._checks import ConfigError, DarsError, check_choice, check_range
+from .outputs import MANIFEST
 from .upright import UprightConfig, estimate_world_up, rotation_between
 
 __all__ = [
@@ -64,7 +65,9 @@ __all__ = [
     "CAMERA_MODELS",
 ]
 
-MANIFEST_NAME = "dars_manifest.json"
+MANIFEST_NAME = MANIFEST
+"""The folder's mark (:data:`toolkit.outputs.MANIFEST`): besides the shared ``files`` list it holds the configuration,
+photos, status and figures of the run."""
 PHOTO_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 _UNSUPPORTED_HINT = {".heic": "convert HEIC to JPEG", ".heif": "convert HEIF to JPEG", ".dng": "develop RAW to JPEG",
                      ".cr2": "develop RAW to JPEG", ".nef": "develop RAW to JPEG", ".arw": "develop RAW to JPEG",
@@ -268,6 +271,8 @@ def _read_manifest(out_dir: Path) -> dict | None:
 
 def _write_manifest(out_dir: Path, manifest: dict) -> None:
     manifest["updated"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    # what dars owns here, in the shared manifest form (toolkit.outputs): other commands may then write beside
+    manifest["files"] = sorted(f"{n}/" if n in ("images", "sparse", "colmap") else n for n in _OUTPUTS)
     tmp = out_dir / (MANIFEST_NAME + ".tmp")
     tmp.write_text(json.dumps(manifest, indent=2))
     tmp.replace(out_dir / MANIFEST_NAME)

@@ -8,9 +8,10 @@ Stages (each writes ``<scene>/priors/<stage>/`` or ``--out DIR``):
 * :func:`priors_weights` — stage 6, distortion weight maps W (``<key>.npy``, ``weights.json``);
 * :func:`sh_probe_json` — stage 5 on an HDR probe file (``dars priors sh-probe``).
 
-Layout and ownership: :class:`OutputDir` / :func:`prepare_out_dir`. Writes are atomic, and a ``manifest.json`` lists
-what dars wrote in a folder: a file that exists but is not in the manifest is the user's and is never overwritten
-unless ``force``. Read-only scene folders fail early with a message suggesting ``--out``.
+Layout and ownership: :class:`OutputDir` / :func:`prepare_out_dir`, the one output-folder policy of
+:mod:`toolkit.outputs`. Writes are atomic, and ``dars_manifest.json`` lists what dars wrote in a folder: a file that
+exists but is not in the manifest is the user's and is never overwritten (``force`` only lets dars write beside such
+files). Read-only scene folders fail early with a message suggesting ``--out``.
 
 Reading: :func:`read_priors` gathers what the trainer uses (labels, metal masks, W maps, ``light.json``,
 ``colour.json``) from the scene and from ``priors_root/<stage>/`` (default: :meth:`toolkit.scene.Scene.priors_dir`);
@@ -22,7 +23,6 @@ from __future__ import annotations
 import json
 import os
 import sys
-import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterable, Literal
@@ -30,8 +30,10 @@ from typing import TYPE_CHECKING, Any, Callable, Iterable, Literal
 import numpy as np
 import torch
 
+from . import outputs
 from ._checks import ConfigError, DarsError
-from .io import atomic_write, linear_to_srgb, read_map, write_json, write_png
+from .io import atomic_write, linear_to_srgb, read_json, read_map, write_json, write_png
+from .outputs import MANIFEST
 from .pixels import PackedViews
 
 if TYPE_CHECKING:
@@ -42,90 +44,41 @@ __all__ = ["OutputDir", "prepare_out_dir", "priors_path", "labels_for", "label_s
 
 TAU = 0.7
 """The sampler's high-distortion threshold (SPEC stage 7); ``weights.json`` reports the fraction of W above it."""
-MANIFEST = "manifest.json"
 LabelSource = Literal["auto", "scene", "segment", "none"]
 
 
 # ============================================================================ output directory handling
-class OutputDir:
-    """A priors output folder: checks writability and ownership, records what we write in ``manifest.json``."""
+class OutputDir(outputs.OutputDir):
+    """A priors output folder: :class:`toolkit.outputs.OutputDir` for the command ``priors STAGE`` (the one
+    output-folder policy: new, empty or dars's; user files never overwritten; ``--force`` writes beside them)."""
 
-    def __init__(self, path: Path, stage: str, force: bool = False):
-        self.path = Path(path)
+    def __init__(self, path: str | os.PathLike, stage: str, force: bool = False, option: str = "--out"):
+        super().__init__(path, f"priors {stage}", force=force, option=option)
         self.stage = stage
-        self.force = force
-        self.written: list[str] = []
-        self._previous: set[str] = set()
 
-    def check(self, planned: Iterable[str]) -> "OutputDir":
-        """Raise :class:`DarsError` if the folder is not writable or a planned file belongs to the user."""
-        _check_writable(self.path)
-        man = self.path / MANIFEST
-        ours: set[str] = set()
-        foreign_manifest = False
-        if man.exists():
-            try:
-                data = json.loads(man.read_text())
-                if data.get("tool") != "dars":
-                    raise ValueError("not ours")
-                ours = set(data.get("files", []))
-            except (ValueError, AttributeError):
-                foreign_manifest = True
-        self._previous = ours
-        if self.force:
-            return self
-        if foreign_manifest:
-            raise DarsError(f"{man} exists and was not written by dars; refusing to overwrite it "
-                            "(pass --force, or choose another --out)")
-        clash = [f for f in planned if f != MANIFEST and (self.path / f).exists() and f not in ours]
-        if clash:
-            more = f" and {len(clash) - 3} more" if len(clash) > 3 else ""
-            raise DarsError(f"refusing to overwrite files dars did not write in {self.path}: "
-                            f"{', '.join(clash[:3])}{more} (pass --force, or choose another --out)")
-        return self
-
-    def file(self, name: str) -> Path:
-        """Path of an output file; records it for the manifest."""
-        self.written.append(name)
-        return self.path / name
-
-    def finish(self, extra: dict | None = None) -> None:
-        files = sorted(set(self.written) | self._previous)
-        write_json(self.path / MANIFEST, {"tool": "dars", "stage": self.stage, "files": files, **(extra or {})})
+    def check(self, planned: Iterable[str] = ()) -> "OutputDir":
+        try:
+            return super().check(planned)
+        except DarsError as e:
+            if "read-only" in str(e) or "is a file" in str(e):
+                raise DarsError(f"{e} (priors go next to the scene unless --out DIR: the scene folder may be "
+                                "read-only, e.g. /work/shared/data)") from e
+            raise
 
 
-def _check_writable(path: Path) -> None:
-    hint = ("pass --out DIR to write the priors somewhere else (the scene folder may be read-only, "
-            "e.g. /work/shared/data)")
-    p = Path(path).absolute()
-    anc = p
-    while not anc.exists():
-        anc = anc.parent
-    if not anc.is_dir():
-        raise DarsError(f"cannot write priors to {p}: {anc} is a file; {hint}")
-    st = anc.stat()
-    # root bypasses permission bits: honour a folder marked read-only (no write bit) anyway
-    if not os.access(anc, os.W_OK) or not (st.st_mode & 0o222):
-        raise DarsError(f"cannot write priors to {p}: {anc} is read-only; {hint}")
-    try:
-        p.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".dars-write-test.", dir=p)
-        os.close(fd)
-        os.unlink(tmp)
-    except OSError as e:
-        raise DarsError(f"cannot write priors to {p}: {e.strerror or e}; {hint}") from e
+def prepare_out_dir(scene, stage: str, out: "str | os.PathLike | outputs.OutputDir | None", planned: Iterable[str],
+                    force: bool = False) -> outputs.OutputDir:
+    """The output folder for ``stage``: ``out`` or ``scene.priors_dir(stage)``, checked for ``planned`` (see
+    :mod:`toolkit.outputs`). An :class:`~toolkit.outputs.OutputDir` passed as ``out`` is checked and returned.
 
-
-def prepare_out_dir(scene, stage: str, out: "str | os.PathLike | OutputDir | None", planned: Iterable[str],
-                    force: bool = False) -> OutputDir:
-    """The output folder for ``stage``: ``out`` or ``scene.priors_dir(stage)``, checked (see :class:`OutputDir`).
-
-    An :class:`OutputDir` passed as ``out`` is checked for ``planned`` too and returned.
+    Raises:
+        DarsError: the folder is not writable, holds other files (without ``force``), or holds a user's file that a
+            planned output would replace.
     """
-    if isinstance(out, OutputDir):
-        return out.check(list(planned) + [MANIFEST])
+    if isinstance(out, outputs.OutputDir):
+        return out.check(planned)
     path = Path(out) if out else scene.priors_dir(stage)
-    return OutputDir(path, stage, force).check(list(planned) + [MANIFEST])
+    return OutputDir(path, stage, force).check(planned)
 
 
 def _progress(it, desc: str, total: int | None = None):
@@ -226,7 +179,7 @@ def priors_colour(scene, out_dir=None, cfg=None, force: bool = False) -> dict:
         scene: a loaded scene (camera poses choose the pairs to match).
         out_dir: output folder (path or :class:`OutputDir`; ``None``: ``scene.priors_dir("colour")``).
         cfg: :class:`toolkit.colour.ColourConfig`.
-        force: overwrite files in the folder that dars did not write.
+        force: write into a folder holding other files (beside them; never over them).
     """
     from .colour import ColourConfig, estimate_colour_transforms
 
@@ -264,7 +217,7 @@ def priors_segment(scene, out_dir=None, backend: str = "provided", model: str | 
             ``export_onnx(net, path, image_size=(H, W))`` returning a report with ``path``, ``opset``,
             ``max_abs_err``, ``inputs_checked`` and ``file_size`` (``dars priors segment`` passes
             :func:`export.onnx.export_segmenter_onnx`; the toolkit itself never imports ``export``). None: no ONNX.
-        force: overwrite files in the folder that dars did not write.
+        force: write into a folder holding other files (beside them; never over them).
 
     Raises:
         DarsError / SegmentationError: unwritable folder, user files in the way, missing labels or model.
@@ -372,7 +325,7 @@ def priors_light(scene, out_dir=None, weights: str | None = None, reduce: str = 
         weights: a file written by :func:`toolkit.lightnet.save_lightnet` (``None``: the shipped weights).
         reduce: ``mean`` or ``median`` of the per-image predictions.
         batch_size: images per forward pass (images are loaded batch by batch).
-        force: overwrite files in the folder that dars did not write.
+        force: write into a folder holding other files (beside them; never over them).
 
     Raises:
         LightNetError: missing or corrupt weights; DarsError: unwritable folder, user files in the way.
@@ -472,7 +425,7 @@ def priors_weights(scene, out_dir=None, cfg=None, labels: str = "auto", use_meta
         labels: ``auto`` (scene labels, else ``priors/segment`` predictions, else none), ``scene``, ``segment``
             or ``none``.
         use_metal: use the scene's ``metal`` masks when present.
-        force: overwrite files in the folder that dars did not write.
+        force: write into a folder holding other files (beside them; never over them).
 
     Raises:
         DarsError: the folder is not writable, or holds files of the user's that would be overwritten.
@@ -523,7 +476,8 @@ class TrainingPriors:
     Attributes:
         labels: uint8 [P] class ids (255 unlabelled), or None.
         labels_source: ``provided`` (the scene's), ``predicted (<dir>)``, ``none`` or ``off``.
-        metal: bool [P] the scene's metal masks, or None.
+        metal: bool [P] metal masks (the scene's or predicted), or None.
+        metal_source: ``provided``, ``predicted (<dir>)`` or ``none``.
         weights: float16 [P] W maps of ``dars priors weights`` (as written: float16), or None (not there, or not asked
             for). Maps written at another image size (another ``--downscale``) are resized to the frames'.
         distortion: float [V] L_distortion of each loaded map (0 where ``weights.json`` lacks it), or None.
@@ -544,10 +498,11 @@ class TrainingPriors:
     light_source: str | None = None
     colour: Any = None
     colour_source: str | None = None
+    metal_source: str = "none"
 
 
 def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *, labels: LabelSource | None = "auto",
-                weights: bool = True, colour: bool = True) -> TrainingPriors:
+                weights: bool = True, colour: bool = True, metal: str = "scene") -> TrainingPriors:
     """Read the priors of ``scene`` for training, file by file into packed buffers (nothing is computed here).
 
     Args:
@@ -557,6 +512,8 @@ def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *,
             off (``labels_source`` ``off``).
         weights: read ``weights/<key>.npy`` (used only when every frame has one).
         colour: read ``colour/colour.json``.
+        metal: where the metal mask comes from: ``scene`` (the scene's ``metal_path`` ground truth, when every frame
+            has one), ``segment`` (``segment/<key>_metal.png`` predictions, when every frame has one) or ``none``.
 
     Raises:
         DarsError: ``colour.json`` lacks a transform for a frame of the scene, or a prior map is not a scaled copy
@@ -575,39 +532,65 @@ def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *,
             for i in range(V):
                 labs.write(i, frame_labels(scene, i, src, seg_dir))
         lab_src = {"scene": "provided", "segment": f"predicted ({seg_dir})"}.get(src, "none")
-    metal = None
-    if scene.has_extra("metal"):
-        metal = PackedViews.allocate(hs, ws, dtype=torch.bool)
+    metal_mask, metal_src = None, "none"
+    if metal == "scene" and scene.has_extra("metal"):
+        metal_mask, metal_src = PackedViews.allocate(hs, ws, dtype=torch.bool), "provided"
         for i in range(V):
-            metal.write(i, scene.load_extra(i, "metal"))
-    out = TrainingPriors(labels=labs, labels_source=lab_src, metal=metal)
+            metal_mask.write(i, scene.load_extra(i, "metal"))
+    elif metal == "segment":
+        seg_dir = priors_path(scene, "segment", priors_root)
+        mfiles = [seg_dir / f"{f.key}_metal.png" for f in scene.frames]
+        if all(p.is_file() for p in mfiles):
+            metal_mask = PackedViews.allocate(hs, ws, dtype=torch.bool)
+            for i, p in enumerate(mfiles):
+                m = np.asarray(read_map(p, f"predicted metal mask {p}"))
+                m = (m[..., 0] if m.ndim == 3 else m) > 0
+                metal_mask.write(i, torch.from_numpy(_fit_to_frame(scene, i, m.astype(np.uint8), nearest=True) > 0))
+            metal_src = f"predicted ({seg_dir})"
+    out = TrainingPriors(labels=labs, labels_source=lab_src, metal=metal_mask)
+    out.metal_source = metal_src
     wdir = priors_path(scene, "weights", priors_root)
     wfiles = [wdir / f"{f.key}.npy" for f in scene.frames]
     if weights and wdir.is_dir() and all(p.is_file() for p in wfiles):
         out.weights = PackedViews.allocate(hs, ws, dtype=torch.float16)
         resized = 0
         for i, p in enumerate(wfiles):
-            w = np.load(p)
-            fitted = _fit_to_frame(scene, i, w.astype(np.float32), nearest=False)
+            w = _read_weight_map(p)
+            fitted = _fit_to_frame(scene, i, w, nearest=False)
             resized += fitted.shape != w.shape
             out.weights.write(i, torch.from_numpy(np.ascontiguousarray(fitted)))
         meta_p = wdir / "weights.json"
         out.distortion = torch.zeros(V)
         if meta_p.is_file():
-            meta = json.loads(meta_p.read_text())
-            per = {d["key"]: d.get("distortion_loss", 0.0) for d in meta.get("images", []) if "key" in d}
-            out.distortion = torch.tensor([float(per.get(f.key, 0.0)) for f in scene.frames])
+            meta = read_json(meta_p, "priors weights.json", _rerun("weights", scene))
+            try:
+                per = {d["key"]: float(d.get("distortion_loss", 0.0)) for d in meta.get("images", []) if "key" in d}
+            except (TypeError, ValueError, AttributeError) as e:
+                raise DarsError(f"priors weights.json {meta_p} has a malformed 'images' list ({e}); "
+                                f"{_rerun('weights', scene)}") from e
+            out.distortion = torch.tensor([per.get(f.key, 0.0) for f in scene.frames])
         out.weights_source = f"loaded ({wdir})" + (f", {resized} resized to the frames' size" if resized else "")
     light_json = priors_path(scene, "light", priors_root) / "light.json"
     if light_json.is_file():
-        d = json.loads(light_json.read_text())
-        out.light = torch.tensor(d["coeffs"], dtype=torch.float32).reshape(9, 3)
+        d = read_json(light_json, "priors light.json", _rerun("light", scene))
+        try:
+            from .sh import check_sh_coeffs
+
+            out.light = torch.from_numpy(check_sh_coeffs(d["coeffs"], "coeffs")).float()
+        except (KeyError, TypeError, ValueError) as e:
+            raise DarsError(f"priors light.json {light_json} has no valid 'coeffs' ({e}); "
+                            f"{_rerun('light', scene)}") from e
         out.light_source = f"light network ({light_json})"
     cjson = priors_path(scene, "colour", priors_root) / "colour.json"
     if colour and cjson.is_file():
         from .colour import ColourTransforms
 
-        tr = ColourTransforms.from_json(json.loads(cjson.read_text()))
+        doc = read_json(cjson, "priors colour.json", _rerun("colour", scene))
+        try:
+            tr = ColourTransforms.from_json(doc)
+        except (KeyError, TypeError, ValueError, IndexError, RuntimeError) as e:
+            raise DarsError(f"priors colour.json {cjson} is not a colour estimate dars can read ({e}); "
+                            f"{_rerun('colour', scene)}") from e
         if tr.keys is not None:
             order = {k: i for i, k in enumerate(tr.keys)}
             missing = [f.key for f in scene.frames if f.key not in order]
@@ -616,3 +599,21 @@ def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *,
             tr = tr.subset([order[f.key] for f in scene.frames])
         out.colour, out.colour_source = tr, f"loaded ({cjson})"
     return out
+
+
+def _rerun(stage: str, scene: "Scene") -> str:
+    return f"re-run `dars priors {stage} {scene.source}` (or delete the file to train without it)"
+
+
+def _read_weight_map(path: Path) -> np.ndarray:
+    """A W map written by :func:`priors_weights`, as float32 [H, W] (a damaged file names itself; the size is checked
+    against its frame by :func:`_fit_to_frame`, which resizes a map made at another ``--downscale``)."""
+    try:
+        w = np.asarray(np.load(path, allow_pickle=False), dtype=np.float32)
+    except Exception as e:  # noqa: BLE001 - numpy raises several types for a damaged .npy
+        raise DarsError(f"priors weight map {path} is truncated or corrupt ({e}); re-run `dars priors weights` "
+                        "(or delete the weights folder: the trainer then computes W itself)") from e
+    if w.ndim != 2:
+        raise DarsError(f"priors weight map {path} has shape {list(w.shape)}, not [H, W]; re-run `dars priors weights` "
+                        "on this scene")
+    return w

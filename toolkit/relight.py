@@ -76,6 +76,8 @@ def parse_material_edit(text: str) -> MaterialEdit:
                 vals[key] = float(v)
             else:
                 raise ConfigError(f"material edit {text!r}: unknown key {key!r} (albedo, roughness, metallic)")
+        except ConfigError:
+            raise
         except ValueError as e:
             raise ConfigError(f"material edit {text!r}: bad value for {key}: {e}") from e
         i += 1

@@ -125,6 +125,8 @@ class OccupancyGrid:
         self.aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3)
         self.contraction = bool(contraction)
         self.far_radius = float(far_radius)
+        self.explore = 0.0
+        """Fraction of all cells marked occupied at random at each update (0: off)."""
         self.resolution = int(resolution)
         self.step = float(step)
         self.threshold = float(threshold)
@@ -212,6 +214,10 @@ class OccupancyGrid:
         mean = occ_val[measured].mean() if measured.any() else occ_val.new_tensor(0.0)
         thr = min(float(mean), self.threshold)
         self.mask = (occ_val > thr) | ~measured
+        if self.explore > 0 and not all_cells:  # a few random empty cells stay sampled, so density can grow back
+            k = int(self.explore * n)
+            pick = torch.randint(0, n, (k,), generator=generator, device="cpu").to(dev)
+            self.mask[pick] = True
         if warmup:
             self.mask = torch.ones_like(self.mask)
         self.updates += 1

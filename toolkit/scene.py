@@ -344,12 +344,32 @@ def list_splits(path: str | Path) -> list[str]:
             return found
         if (path / "transforms.json").is_file() or _find_colmap(path) is not None:
             return ["train", "test", "all"]
-        raise SceneError(f"{path}: no transforms_*.json, transforms.json or COLMAP model (cameras.txt + images.txt) found")
+        raise _not_a_scene(path, f"{path}: no transforms_*.json, transforms.json or COLMAP model (cameras.txt + "
+                                 "images.txt) found")
     if path.suffix.lower() == ".npz":
         return ["train", "test", "all"]
     if path.suffix.lower() == ".json":
         return ["train", "test", "all"]
-    raise SceneError(f"{path}: not a scene directory, transforms JSON or tiny-NeRF .npz")
+    raise _not_a_scene(path, f"{path}: not a scene directory, transforms JSON or tiny-NeRF .npz")
+
+
+_PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".heic", ".heif", ".webp", ".dng")
+
+
+def _not_a_scene(path: Path, message: str) -> SceneError:
+    """The error for a path that is no scene; a folder of photos (or one photo) gets the way to make it one."""
+    if path.is_file() and path.suffix.lower() in _PHOTO_SUFFIXES:
+        return SceneError(f"{message}: {path.name} is a photo; a scene needs photos with camera poses: put the photos "
+                          f"in a folder and estimate the poses with `dars poses PHOTOS_DIR --out SCENE_DIR`")
+    if path.is_dir():
+        try:
+            photos = sum(1 for p in path.rglob("*") if p.suffix.lower() in _PHOTO_SUFFIXES and p.is_file())
+        except OSError:
+            photos = 0
+        if photos:
+            return SceneError(f"{message}. It holds {photos} photo{'s' if photos > 1 else ''} but no camera poses: "
+                              f"estimate them with `dars poses {path} --out SCENE_DIR`, then give SCENE_DIR")
+    return SceneError(message)
 
 
 def load_scene(
@@ -392,6 +412,8 @@ def load_scene(
         raise SceneError(f"background must be 3 values in [0, 1], got {list(background)}")
     if path.is_file() and path.suffix.lower() == ".npz":
         scene = _load_npz(path, split, n_train, bg, downscale)
+    elif path.is_file() and path.suffix.lower() in _PHOTO_SUFFIXES:
+        raise _not_a_scene(path, f"{path}: not a scene directory, transforms JSON or tiny-NeRF .npz")
     elif path.is_file():
         scene = _load_transforms(path, split, test_every, bg, downscale, distortion, single=True)
     elif any((path / f"transforms_{s}.json").is_file() for s in ("train", "val", "test")):
@@ -411,8 +433,8 @@ def load_scene(
     elif _find_colmap(path) is not None:
         scene = _load_colmap(path, split, test_every, bg, downscale, distortion)
     else:
-        raise SceneError(f"{path}: no transforms_*.json, transforms.json, COLMAP model (cameras.txt + images.txt) "
-                         "or .npz found")
+        raise _not_a_scene(path, f"{path}: no transforms_*.json, transforms.json, COLMAP model (cameras.txt + "
+                                 "images.txt) or .npz found")
     if len(scene) == 0:
         raise SceneError(f"{scene.source}: split '{split}' is empty (no frames); check the file or the split rule")
     if aabb is not None:
@@ -498,9 +520,17 @@ def _scene_aabb(c2w: np.ndarray, fx: np.ndarray, width: np.ndarray, meta: dict) 
 
 def _read_transforms(file: Path) -> dict:
     try:
-        meta = json.loads(file.read_text())
+        text = file.read_bytes().decode("utf-8")
+        meta = json.loads(text)
+    except UnicodeDecodeError as e:
+        raise SceneError(f"{file} is not a transforms JSON (not a text file); give the scene folder or its "
+                         "transforms_*.json") from e
     except json.JSONDecodeError as e:
-        raise SceneError(f"{file}: invalid JSON ({e})") from e
+        what = "it is empty" if not text.strip() else f"invalid JSON: {e}"
+        raise SceneError(f"{file}: not a valid transforms JSON ({what}); fix or re-export it") from e
+    if not isinstance(meta, dict):
+        raise SceneError(f"{file}: expected a JSON object with a 'frames' list at the top level (the Blender / "
+                         f"nerfstudio transforms format), got a {type(meta).__name__}")
     if not isinstance(meta.get("frames"), list):
         raise SceneError(f"{file}: missing 'frames' list")
     return meta
@@ -523,12 +553,15 @@ def _all_poses_for_bounds(files: list[Path]) -> tuple[np.ndarray, np.ndarray, np
                     continue
             except (KeyError, TypeError, ValueError):
                 continue
-            w = float(fm.get("w", meta.get("w", 0)) or 0)
-            if fm.get("fl_x", meta.get("fl_x")) is not None and w > 0:
-                fx = float(fm.get("fl_x", meta.get("fl_x")))
-            else:
-                ang = float(fm.get("camera_angle_x", meta.get("camera_angle_x", 0.69)))
-                w, fx = 1.0, 0.5 / math.tan(0.5 * ang)
+            try:
+                w = float(fm.get("w", meta.get("w", 0)) or 0)
+                if fm.get("fl_x", meta.get("fl_x")) is not None and w > 0:
+                    fx = float(fm.get("fl_x", meta.get("fl_x")))
+                else:
+                    ang = float(fm.get("camera_angle_x", meta.get("camera_angle_x", 0.69)))
+                    w, fx = 1.0, 0.5 / math.tan(0.5 * ang)
+            except (AttributeError, TypeError, ValueError, ZeroDivisionError):
+                continue  # reported when its split is loaded
             c2ws.append(m); fxs.append(fx); ws.append(w)  # noqa: E702
     return np.stack(c2ws) if c2ws else np.zeros((0, 4, 4)), np.array(fxs), np.array(ws)
 
@@ -545,8 +578,13 @@ def _load_transforms(file: Path, split: str, test_every: int, bg, downscale: int
     dist_keys = ("k1", "k2", "p1", "p2", "k3")
     for i, fm in enumerate(frames_meta):
         where = f"{file} frame {i}"
+        if not isinstance(fm, dict):
+            raise SceneError(f"{where}: expected an object {{\"file_path\": ..., \"transform_matrix\": ...}}, "
+                             f"got {type(fm).__name__} {str(fm)[:40]!r}")
         if "file_path" not in fm:
             raise SceneError(f"{where}: missing 'file_path'")
+        if not isinstance(fm["file_path"], str) or not fm["file_path"]:
+            raise SceneError(f"{where}: 'file_path' must be an image path (a string), got {fm['file_path']!r}")
         where = f"{file} frame {i} ('{fm['file_path']}')"
         if "transform_matrix" not in fm:
             raise SceneError(f"{where}: missing 'transform_matrix' (camera pose)")
@@ -559,30 +597,34 @@ def _load_transforms(file: Path, split: str, test_every: int, bg, downscale: int
             m = np.vstack([m, [0, 0, 0, 1]])
         img_path = _resolve_image(base, fm["file_path"], where)
         w_img, h_img = _image_size(img_path, where)
-        get = lambda k, d=None: fm.get(k, meta.get(k, d))  # noqa: E731 - per-frame overrides shared intrinsics
-        w = get("w")
-        h = get("h")
-        w = int(w) if w is not None else w_img
-        h = int(h) if h is not None else h_img
+        def get(k, d=None, kind=float):  # per-frame values override the shared ones; numbers checked, key named
+            v = fm.get(k, meta.get(k))
+            return d if v is None else _number(v, k, where, kind)
+
+        w = get("w", w_img, int)
+        h = get("h", h_img, int)
         if (w, h) != (w_img, h_img):
             raise SceneError(f"{where}: image {img_path.name} is {w_img}x{h_img} but the intrinsics say w={w}, h={h}; "
                              "fix w/h (or fl_x, cx, ...) in the transforms file or resize the image")
         if get("fl_x") is not None:
-            fx = float(get("fl_x"))
-            fy = float(get("fl_y", fx))
+            fx = get("fl_x")
+            fy = get("fl_y", fx)
         elif get("camera_angle_x") is not None:
-            fx = 0.5 * w / math.tan(0.5 * float(get("camera_angle_x")))
-            fy = 0.5 * h / math.tan(0.5 * float(get("camera_angle_y"))) if get("camera_angle_y") is not None else fx
+            for k in ("camera_angle_x", "camera_angle_y"):
+                if get(k) is not None and not 0.0 < get(k) < math.pi:
+                    raise SceneError(f"{where}: '{k}' must be a field of view in radians in (0, pi), got {get(k)}")
+            fx = 0.5 * w / math.tan(0.5 * get("camera_angle_x"))
+            fy = 0.5 * h / math.tan(0.5 * get("camera_angle_y")) if get("camera_angle_y") is not None else fx
             if get("fl_y") is not None:
-                fy = float(get("fl_y"))
+                fy = get("fl_y")
         else:
             raise SceneError(f"{where}: no intrinsics: give 'camera_angle_x' or 'fl_x' (and optionally fl_y, cx, cy)")
-        cx = float(get("cx", w / 2.0))
-        cy = float(get("cy", h / 2.0))
+        cx = get("cx", w / 2.0)
+        cy = get("cy", h / 2.0)
         if not all(math.isfinite(v) and v > 0 for v in (fx, fy)):
             raise SceneError(f"{where}: focal length must be positive and finite, got fl_x={fx}, fl_y={fy}")
-        coeffs = tuple(float(get(k, 0.0)) for k in dist_keys)
-        if get("k4") is not None or get("camera_model") in ("OPENCV_FISHEYE", "FISHEYE"):
+        coeffs = tuple(get(k, 0.0) for k in dist_keys)
+        if fm.get("k4", meta.get("k4")) is not None or get("camera_model", None, str) in ("OPENCV_FISHEYE", "FISHEYE"):
             raise SceneError(f"{where}: fisheye distortion is not supported; undistort the images first "
                              "(e.g. `colmap image_undistorter`) and drop k1..k4")
         has_dist = any(abs(c) > 0 for c in coeffs)
@@ -606,13 +648,34 @@ def _load_transforms(file: Path, split: str, test_every: int, bg, downscale: int
     extra_meta = {k: v for k, v in meta.items() if k != "frames"}
     extra_meta["aabb_source"] = "file" if "aabb" in meta else "cameras"
     return Scene(source=file, split=split, cameras=cams, frames=tuple(frames), aabb=torch.tensor(box, dtype=torch.float32),
-                 near=_opt_float(meta.get("near")), far=_opt_float(meta.get("far")), sh=sh, envmap_path=envmap,
+                 near=_opt_number(meta, "near", file), far=_opt_number(meta, "far", file), sh=sh, envmap_path=envmap,
                  background=bg, downscale=downscale, srgb=True,
-                 depth_unit_scale_factor=float(meta.get("depth_unit_scale_factor", 0.001)), meta=extra_meta)
+                 depth_unit_scale_factor=_number(meta.get("depth_unit_scale_factor", 0.001), "depth_unit_scale_factor",
+                                                 str(file)), meta=extra_meta)
 
 
-def _opt_float(x) -> float | None:
-    return None if x is None else float(x)
+def _number(value, key: str, where: str, kind: type = float):
+    """``value`` of ``key`` as a finite ``kind`` (float, int or str), else a :class:`SceneError` naming file, frame,
+    key and value (``"w": "abc"`` in a transforms file)."""
+    if kind is str:
+        return str(value)
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise SceneError(f"{where}: '{key}' must be a number, got {value!r}; fix it in the transforms file")
+    try:
+        v = float(value)
+    except ValueError:
+        raise SceneError(f"{where}: '{key}' must be a number, got {value!r}; fix it in the transforms file") from None
+    if not math.isfinite(v):
+        raise SceneError(f"{where}: '{key}' must be finite, got {value!r}; fix it in the transforms file")
+    if kind is int:
+        if v != int(v) or v <= 0:
+            raise SceneError(f"{where}: '{key}' must be a positive whole number of pixels, got {value!r}")
+        return int(v)
+    return v
+
+
+def _opt_number(meta: dict, key: str, file: Path) -> float | None:
+    return None if meta.get(key) is None else _number(meta[key], key, str(file))
 
 
 def _read_sh(meta: dict, base: Path, file: Path) -> torch.Tensor | None:
@@ -621,11 +684,17 @@ def _read_sh(meta: dict, base: Path, file: Path) -> torch.Tensor | None:
         p = base / meta["sh_path"]
         if not p.is_file():
             raise SceneError(f"{file}: sh_path {p} not found")
-        loaded = json.loads(p.read_text())
+        try:
+            loaded = json.loads(p.read_text())
+        except (ValueError, UnicodeDecodeError) as e:
+            raise SceneError(f"{file}: sh_path {p} is not valid JSON ({e})") from e
         sh = loaded.get("coeffs", loaded) if isinstance(loaded, dict) else loaded
     if sh is None:
         return None
-    arr = np.asarray(sh, dtype=np.float32)
+    try:
+        arr = np.asarray(sh, dtype=np.float32)
+    except (TypeError, ValueError) as e:
+        raise SceneError(f"{file}: 'sh' must hold 9 x [r, g, b] = 27 numbers ({e})") from e
     if arr.size != 27:
         raise SceneError(f"{file}: 'sh' must hold 9 x [r, g, b] = 27 numbers, got shape {list(arr.shape)}")
     arr = arr.reshape(9, 3)

@@ -691,4 +691,4 @@ def read_sh_json(path: str | Path) -> np.ndarray:
     try:
         return check_sh_coeffs(obj, str(path))
     except (TypeError, ValueError) as e:
-        raise SceneError(f"{path}: {e}") from e
+        raise SceneError(str(e) if str(path) in str(e) else f"{path}: {e}") from e

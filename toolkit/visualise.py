@@ -11,7 +11,8 @@ import torch
 from .io import linear_to_srgb, write_png
 from .scene import SEMANTIC_CLASSES, UNLABELLED, Scene
 
-__all__ = ["LABEL_COLOURS", "colourise_labels", "colourise_normals", "colourise_scalar", "contact_sheet", "tile"]
+__all__ = ["LABEL_COLOURS", "colourise_labels", "colourise_normals", "colourise_scalar", "contact_sheet", "tile",
+           "OUTPUT_NAMES", "render_output_images"]
 
 LABEL_COLOURS = np.array([
     [0.90, 0.30, 0.25],  # painting
@@ -92,6 +93,11 @@ def contact_sheet(scene: Scene, out: Path, n: int = 6) -> Path:
         rows.append(row)
     write_png(out, tile(rows))
     return out
+
+
+OUTPUT_NAMES = ("rgb", "albedo", "diffuse", "specular", "roughness", "metallic", "opacity", "normal", "semantic",
+                "depth", "samples")
+"""Every image :func:`render_output_images` can return (``dars render`` writes ``<view>_<name>.png``)."""
 
 
 def render_output_images(outputs, srgb: bool = True) -> dict[str, np.ndarray]:

@@ -36,3 +36,37 @@ def positive_int(text: str) -> int:
     if n < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
     return n
+def number(kind: type = float, min: float | None = None, max: float | None = None, above: float | None = None):
+    """An argparse ``type=`` that accepts a finite number of ``kind`` (int or float) in range, else names the rule:
+    ``dars train: error: argument --minutes: must be a finite number, got 'nan'``. Checked while parsing, before any
+    work."""
+    import math
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'a whole number' if kind is int else 'a number'}, "
+                                             f"got {text!r}") from None
+        if kind is float and not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+        if min is not None and value < min:
+            raise argparse.ArgumentTypeError(f"must be ≥ {min:g}, got {text}")
+        if above is not None and value <= above:
+            raise argparse.ArgumentTypeError(f"must be > {above:g}, got {text}")
+        if max is not None and value > max:
+            raise argparse.ArgumentTypeError(f"must be ≤ {max:g}, got {text}")
+        return value
+
+    parse.__name__ = kind.__name__
+    return parse
+
+
+COUNT = number(int, min=0)
+"""A whole number ≥ 0 (0 usually means "all" or "off")."""
+POSITIVE = number(int, min=1)
+"""A whole number ≥ 1."""
+FINITE = number(float)
+"""Any finite number."""
+NONNEGATIVE = number(float, min=0)
+"""A finite number ≥ 0."""

@@ -19,33 +19,39 @@ import argparse
 from pathlib import Path
 
 from .._checks import DarsError
-from ._common import print_json
+from ._common import COUNT, POSITIVE, number, print_json
+
+MESH_FILES = ("mesh.ply", "mesh_stats.json")
+BAKE_FILES = ("base_color.png", "orm.png", "normal.png", "mesh_uv.obj", "bake_stats.json")
+ASSET_FILES = ("scene.glb", "mesh.ply", "mesh_stats.json", "textures/base_color.png", "textures/orm.png",
+               "textures/normal.png")
 
 
 def add_mesh_options(q: argparse.ArgumentParser) -> None:
     q.add_argument("--method", choices=("mc", "tsdf"), default="mc",
                    help="marching cubes on density (default) or TSDF fusion of rendered depth maps")
-    q.add_argument("--resolution", type=int, default=256,
+    q.add_argument("--resolution", type=number(int, min=8, max=4096), default=256,
                    help="grid cells along the longest box edge (mc), or the TSDF voxel = edge / resolution (tsdf)")
-    q.add_argument("--level", type=float, default=None,
+    q.add_argument("--level", type=number(float, above=0), default=None,
                    help="density iso-level in 1/m (default: from the training rays, see --level-quantile)")
-    q.add_argument("--level-quantile", type=float, default=0.1,
+    q.add_argument("--level-quantile", type=number(float, min=0, max=1), default=0.1,
                    help="without --level: the quantile of σ where the training rays cross half-transmittance, "
                         "capped at ln 2 / voxel (0 = the plain half-opacity rule ln 2 / voxel)")
-    q.add_argument("--faces", type=int, default=100_000, help="simplify to this many faces (0 = keep all)")
+    q.add_argument("--faces", type=COUNT, default=100_000, help="simplify to this many faces (0 = keep all)")
     q.add_argument("--simplify", choices=("fast", "quality"), default="fast",
                    help="fast-simplification (default) or pymeshlab quadric edge collapse")
-    q.add_argument("--min-component", type=float, default=0.05,
+    q.add_argument("--min-component", type=number(float, min=0, max=1), default=0.05,
                    help="drop connected components smaller than this fraction of the largest (0 = keep all)")
     q.add_argument("--keep-unseen", action="store_true", help="keep faces that no training camera sees")
-    q.add_argument("--depth-samples", type=int, default=256, help="samples per ray for --method tsdf depth maps")
+    q.add_argument("--depth-samples", type=POSITIVE, default=256, help="samples per ray for --method tsdf depth maps")
     q.add_argument("--device", default="cpu", help="device the field is queried on")
 
 
 def add_bake_options(q: argparse.ArgumentParser) -> None:
-    q.add_argument("--texture", type=int, default=1024, help="texture size in texels (square)")
+    q.add_argument("--texture", type=number(int, min=16, max=16384), default=1024,
+                   help="texture size in texels (square, 16-16384)")
     q.add_argument("--supersample", type=int, default=1, choices=(1, 2), help="bake at 2x and box-filter down")
-    q.add_argument("--ao-samples", type=int, default=0, help="rays per texel for ambient occlusion (0 = none)")
+    q.add_argument("--ao-samples", type=COUNT, default=0, help="rays per texel for ambient occlusion (0 = none)")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -53,6 +59,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("run", help="RUN directory (output of `dars train`)")
     q.add_argument("--out", default=None, help="output directory (default RUN/mesh)")
     add_mesh_options(q)
+    q.add_argument("--force", action="store_true", help="write into a non-empty folder beside its files")
     q.add_argument("--json", action="store_true", help="machine-readable statistics on stdout")
     q.set_defaults(func=cmd_mesh)
 
@@ -62,6 +69,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--out", default=None, help="output directory (default RUN/bake)")
     add_bake_options(q)
     q.add_argument("--device", default="cpu", help="device the field is queried on")
+    q.add_argument("--force", action="store_true", help="write into a non-empty folder beside its files")
     q.add_argument("--json", action="store_true", help="machine-readable statistics on stdout")
     q.set_defaults(func=cmd_bake)
 
@@ -71,6 +79,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_mesh_options(q)
     add_bake_options(q)
     q.add_argument("--no-sh", action="store_true", help="do not store the SH lighting in the GLB")
+    q.add_argument("--force", action="store_true", help="write into a non-empty folder beside its files")
     q.add_argument("--json", action="store_true", help="machine-readable statistics on stdout")
     q.set_defaults(func=cmd_export_asset)
 
@@ -103,19 +112,37 @@ def _finish(args, stats: dict, human: str) -> int:
     return 0
 
 
+def _out(args, default: str, planned):
+    """The command's output folder (``--out`` or ``RUN/<default>``), checked before any work."""
+    from ..outputs import OutputDir
+
+    path = Path(args.out) if args.out else Path(args.run) / default
+    option = "--out" if args.out else f"the default output folder (RUN/{default}; --out picks another)"
+    return OutputDir(path, args.command, force=args.force, option=option).check(planned)
+
+
+def _require_run(run: str) -> None:
+    """A RUN that is not a run folder (or has a corrupt config.json) fails here, before any work."""
+    from ..train.folder import find_run
+
+    find_run(run)
+
+
 def cmd_mesh(args: argparse.Namespace) -> int:
     from ..asset import asset_field, build_mesh
     from ..io import write_json
     from ..mesh import save_mesh
 
     cfg = asset_config(args)
+    _require_run(args.run)
+    out = _out(args, "mesh", MESH_FILES)
     field = asset_field(args.run)
-    out = Path(args.out) if args.out else Path(args.run) / "mesh"
     mesh, stats = build_mesh(field, cfg)
-    save_mesh(mesh, out / "mesh.ply")
-    stats["mesh"] = str(out / "mesh.ply")
-    write_json(out / "mesh_stats.json", stats)
-    return _finish(args, stats, f"wrote {out / 'mesh.ply'} ({stats['vertices']} vertices, {stats['faces']} faces)")
+    with out:
+        save_mesh(mesh, out.path / "mesh.ply")
+        stats["mesh"] = str(out.path / "mesh.ply")
+        write_json(out.path / "mesh_stats.json", stats)
+    return _finish(args, stats, f"wrote {out.path / 'mesh.ply'} ({stats['vertices']} vertices, {stats['faces']} faces)")
 
 
 def cmd_bake(args: argparse.Namespace) -> int:
@@ -124,18 +151,20 @@ def cmd_bake(args: argparse.Namespace) -> int:
     from ..mesh import load_mesh
 
     cfg = asset_config(args)
-    field = asset_field(args.run)
+    _require_run(args.run)
     mesh_path = Path(args.mesh) if args.mesh else Path(args.run) / "mesh" / "mesh.ply"
     if not mesh_path.is_file():
         raise DarsError(f"mesh not found: {mesh_path} (run `dars mesh {args.run}` first or pass --mesh FILE)")
+    out = _out(args, "bake", BAKE_FILES)
     mesh = load_mesh(mesh_path)
-    out = Path(args.out) if args.out else Path(args.run) / "bake"
+    field = asset_field(args.run)
     uvmesh, textures, stats = bake_mesh(mesh, field.material_fn, cfg)
-    write_textures(textures, out)
-    write_uv_obj(uvmesh, out / "mesh_uv.obj")
-    stats["out"] = str(out)
-    write_json(out / "bake_stats.json", stats)
-    return _finish(args, stats, f"wrote {out}/base_color.png, orm.png, normal.png, mesh_uv.obj")
+    with out:
+        write_textures(textures, out.path)
+        write_uv_obj(uvmesh, out.path / "mesh_uv.obj")
+        stats["out"] = str(out.path)
+        write_json(out.path / "bake_stats.json", stats)
+    return _finish(args, stats, f"wrote {out.path}/base_color.png, orm.png, normal.png, mesh_uv.obj")
 
 
 def cmd_export_asset(args: argparse.Namespace) -> int:
@@ -144,14 +173,16 @@ def cmd_export_asset(args: argparse.Namespace) -> int:
     from ..mesh import save_mesh
 
     cfg = asset_config(args)
-    out = Path(args.out)
+    _require_run(args.run)
+    out = _out(args, "", ASSET_FILES)
     asset = build_asset(args.run, cfg)
     stats = asset.stats
-    save_mesh(asset.mesh, out / "mesh.ply")
-    write_textures(asset.textures, out / "textures")
-    glb = export_glb(asset, out / "scene.glb", sh=None if args.no_sh else asset.sh)
-    stats["glb"] = str(glb)
-    stats["glb_bytes"] = glb.stat().st_size
-    write_json(out / "mesh_stats.json", stats)
+    with out:
+        save_mesh(asset.mesh, out.path / "mesh.ply")
+        write_textures(asset.textures, out.path / "textures")
+        glb = export_glb(asset, out.path / "scene.glb", sh=None if args.no_sh else asset.sh)
+        stats["glb"] = str(glb)
+        stats["glb_bytes"] = glb.stat().st_size
+        write_json(out.path / "mesh_stats.json", stats)
     return _finish(args, stats, f"wrote {glb} ({stats['faces']} faces, {args.texture}² textures, "
                                 f"{stats['glb_bytes'] / 1e6:.1f} MB)")

@@ -1,4 +1,4 @@
-"""``dars eval`` (metrics + report of one run) and ``dars ablate`` (Table 6 under one budget)."""
+"""``dars eval`` (metrics + report of one run) and ``dars ablate`` (Table 6 under one budget, one or several seeds)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,10 @@ import argparse
 from pathlib import Path
 
 from .._checks import DarsError
-from ._common import log, print_json, set_threads
+from ._common import COUNT, log, number, print_json, set_threads
+
+EVAL_FILES = ("metrics.json", "report.md", "curves.png", "weights.png", "brightness.png", "test_grid.png")
+"""What ``dars eval`` writes (:func:`toolkit.report.write_eval_report`)."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -15,59 +18,92 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("run", help="run directory of `dars train`")
     q.add_argument("--split", default="test", help="split of the run's scene to evaluate (default: test)")
     q.add_argument("--json", action="store_true", help="print only the metrics JSON on stdout")
-    q.add_argument("--limit", type=int, default=0, help="evaluate at most N views, evenly spaced (default: all)")
+    q.add_argument("--limit", type=COUNT, default=0, help="evaluate at most N views, evenly spaced (default: all)")
     q.add_argument("--lpips-weights", help="LPIPS weight file(s)/folder (else $DARS_LPIPS_WEIGHTS; else LPIPS is null)")
     q.add_argument("--reference-mesh", help="mesh file in the scene's frame: adds the Chamfer distance")
-    q.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes cells for the Chamfer mesh")
-    q.add_argument("--lux-factor", type=float, help="lux per unit of linear luminance (view consistency in lux)")
+    q.add_argument("--mesh-resolution", type=number(int, min=8, max=4096), default=128,
+                   help="marching-cubes cells for the Chamfer mesh")
+    q.add_argument("--lux-factor", type=number(float, above=0),
+                   help="lux per unit of linear luminance (view consistency in lux)")
     q.add_argument("--checkpoint", help="a snapshot checkpoint instead of the run's last one")
     q.add_argument("--out", help="output directory (default: RUN/eval)")
-    q.add_argument("--threads", type=int, default=0, help="CPU threads (default: all cores)")
+    q.add_argument("--force", action="store_true", help="write into a non-empty folder beside its files")
+    q.add_argument("--threads", type=COUNT, default=0, help="CPU threads (default: all cores)")
     q.add_argument("--quiet", action="store_true", help="no progress bar")
     q.set_defaults(func=cmd_eval)
 
-    q = sub.add_parser("ablate", help="train and evaluate the Table 6 variants under one budget and seed")
+    q = sub.add_parser("ablate", help="train and evaluate the Table 6 variants under one budget, over one or "
+                                      "several seeds (mean ± std, paired differences against the full model)")
     q.add_argument("scene", help="scene directory or file")
-    q.add_argument("--out", required=True, help="output directory (one run per variant, ablation.json/.md)")
+    q.add_argument("--out", required=True, help="output directory (one run per variant and seed: OUT/VARIANT/ with "
+                                                "one seed, OUT/VARIANT/seed_S/ with several; ablation.json/.md)")
     q.add_argument("--preset", default="fast", choices=["fast", "paper"])
     g = q.add_mutually_exclusive_group(required=True)
-    g.add_argument("--minutes", type=float, default=0.0, help="wall-clock training budget per variant")
-    g.add_argument("--steps", type=int, default=0, help="training steps per variant")
-    q.add_argument("--seed", type=int, default=0)
+    g.add_argument("--minutes", type=number(float, above=0), default=0.0,
+                   help="wall-clock training budget per run (the variants then train different step counts)")
+    g.add_argument("--steps", type=number(int, min=1), default=0,
+                   help="training steps per run (equal steps: the budget to compare variants with)")
+    s = q.add_mutually_exclusive_group()
+    s.add_argument("--seed", type=COUNT, default=None, help="the one seed of every variant (default 0)")
+    s.add_argument("--seeds", type=_seed_list, default=None,
+                   help="comma-separated seeds, e.g. 0,1,2: every variant once per seed")
     from ..ablation import VARIANTS  # imports nothing heavy
 
-    q.add_argument("--variants", nargs="+", choices=list(VARIANTS), help="subset of variants (default: all six)")
+    q.add_argument("--variants", nargs="+", choices=list(VARIANTS), help="subset of variants (default: all six); "
+                   "no_semantics removes the semantic input (L_semantic, label edges in W), no_mat_loss removes L_mat")
     q.add_argument("--split", default="test", help="split to evaluate")
-    q.add_argument("--limit", type=int, default=0, help="evaluate at most N views per variant")
+    q.add_argument("--limit", type=COUNT, default=0, help="evaluate at most N views per variant")
     q.add_argument("--lpips-weights", help="LPIPS weight file(s)/folder")
-    q.add_argument("--batch-rays", type=int, default=0, help="override rays per step (every variant)")
+    q.add_argument("--batch-rays", type=COUNT, default=0, help="override rays per step (every variant; ≥ 16)")
+    q.add_argument("--labels", default="predicted", choices=("predicted", "ground-truth", "none"),
+                   help="label and metal-mask source of every variant, as dars train --labels (default: predicted, "
+                        "the segmentation prior's; the report lists which inputs were ground truth)")
     q.add_argument("--priors", help="directory holding the prior stages' outputs, as dars train --priors "
                                     "(default: <scene>/priors)")
-    q.add_argument("--threads", type=int, default=0, help="CPU threads (default: all cores)")
+    q.add_argument("--force", action="store_true", help="write into a non-empty folder beside its files")
+    q.add_argument("--threads", type=COUNT, default=0, help="CPU threads (default: all cores)")
     q.add_argument("--json", action="store_true", help="print only ablation.json on stdout")
     q.add_argument("--quiet", action="store_true", help="no progress bars")
     q.set_defaults(func=cmd_ablate)
 
 
+def _seed_list(text: str) -> list[int]:
+    from ..ablation import parse_seeds
+    from .._checks import ConfigError
+
+    try:
+        return parse_seeds(text)
+    except ConfigError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
-    from ..evaluate import EvalConfig, evaluate_run
-    from ..report import headline_text, write_eval_report
-    from ..train.run import load_run
+    from ..outputs import OutputDir
+    from ..train.folder import find_run
 
     set_threads(args.threads)
     run_dir = Path(args.run)
     if not run_dir.is_dir():
         raise DarsError(f"{run_dir} is not a directory; give the output directory of `dars train SCENE --out RUN`")
-    if args.limit < 0:
-        raise DarsError(f"--limit {args.limit}: give a positive number of views (or 0 for all)")
     if args.reference_mesh and not Path(args.reference_mesh).is_file():
         raise DarsError(f"--reference-mesh {args.reference_mesh}: file not found")
+    if args.lpips_weights and not Path(args.lpips_weights).exists():
+        raise DarsError(f"--lpips-weights {args.lpips_weights}: not found (give the LPIPS weight file(s) or their "
+                        "folder, or leave the option out: LPIPS is then reported as unavailable)")
+    find_run(run_dir, args.checkpoint)
+    option = "--out" if args.out else "the default output folder (RUN/eval; --out picks another)"
+    out = OutputDir(args.out or run_dir / "eval", "eval", force=args.force, option=option).check(EVAL_FILES)
+
+    from ..evaluate import EvalConfig, evaluate_run
+    from ..report import headline_text, write_eval_report
+    from ..train.run import load_run
+
     cfg = EvalConfig(limit=args.limit, lpips_weights=args.lpips_weights, reference_mesh=args.reference_mesh,
                      mesh_resolution=args.mesh_resolution, lux_factor=args.lux_factor, progress=not (args.quiet or args.json))
     run = load_run(run_dir, args.checkpoint)
     result = evaluate_run(run, args.split, cfg, log=log)
-    out = Path(args.out) if args.out else run_dir / "eval"
-    written = write_eval_report(result, out)
+    with out:
+        written = write_eval_report(result, out.path)
     doc = result.to_json()
     if args.json:
         print_json(doc)
@@ -79,20 +115,34 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
+    from ..ablation import ABLATION_FILES, VARIANTS
+    from ..outputs import OutputDir
+    from ..train.folder import check_priors_root
+
+    set_threads(args.threads)
+    if not (args.steps or args.minutes):
+        raise DarsError("give a positive training budget per variant: --steps N or --minutes M")
+    if args.batch_rays and args.batch_rays < 16:
+        raise DarsError(f"--batch-rays {args.batch_rays}: give at least 16 rays per step (or leave it out)")
+    if not Path(args.scene).exists():
+        raise DarsError(f"scene not found: {args.scene}")
+    check_priors_root(args.priors)
+    variants = args.variants or list(VARIANTS)
+    out = OutputDir(args.out, "ablate", force=args.force).check(list(ABLATION_FILES) + [f"{v}/" for v in variants])
+
     from ..ablation import run_ablation
     from ..evaluate import EvalConfig
     from ..report import ablation_text
 
-    set_threads(args.threads)
-    if args.steps < 0 or args.minutes < 0 or not (args.steps or args.minutes):
-        raise DarsError("give a positive training budget per variant: --steps N or --minutes M")
-    if args.limit < 0:
-        raise DarsError(f"--limit {args.limit}: give a positive number of views (or 0 for all)")
-    overrides = {"batch_rays": args.batch_rays} if args.batch_rays else {}
-    res = run_ablation(args.scene, args.out, preset=args.preset, minutes=args.minutes, steps=args.steps, seed=args.seed,
-                       variants=args.variants, overrides=overrides,
-                       eval_cfg=EvalConfig(limit=args.limit, lpips_weights=args.lpips_weights), split=args.split,
-                       progress_bar=not (args.quiet or args.json), log=log, priors_root=args.priors)
+    overrides: dict = {"batch_rays": args.batch_rays} if args.batch_rays else {}
+    if args.labels != "predicted":
+        overrides["labels"] = args.labels
+    with out.guard():
+        res = run_ablation(args.scene, out, preset=args.preset, minutes=args.minutes, steps=args.steps,
+                           seed=None if args.seeds else (args.seed or 0), seeds=args.seeds,
+                           variants=args.variants, overrides=overrides,
+                           eval_cfg=EvalConfig(limit=args.limit, lpips_weights=args.lpips_weights), split=args.split,
+                           progress_bar=not (args.quiet or args.json), log=log, priors_root=args.priors)
     doc = res.to_json()
     if args.json:
         print_json(doc)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ._common import SCENE_HELP, print_json
+from ._common import POSITIVE, SCENE_HELP, print_json
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -18,7 +18,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("scene")
     q.add_argument("--split", default="train")
     q.add_argument("--out", required=True, help="output PNG")
-    q.add_argument("-n", type=int, default=6, help="number of views")
+    q.add_argument("-n", type=POSITIVE, default=6, help="number of views")
+    q.add_argument("--force", action="store_true", help="replace --out if it exists")
     q.set_defaults(func=cmd_contact_sheet)
 
 
@@ -46,10 +47,12 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_contact_sheet(args: argparse.Namespace) -> int:
+    from ..outputs import check_output_file
     from ..scene import load_scene
     from ..visualise import contact_sheet
 
+    path = check_output_file(args.out, args.force, suffixes=(".png",))
     scene = load_scene(args.scene, args.split)
-    out = contact_sheet(scene, Path(args.out), n=args.n)
+    out = contact_sheet(scene, path, n=args.n)
     print(f"wrote {out}")
     return 0

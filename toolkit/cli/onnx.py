@@ -18,7 +18,12 @@ import sys
 from pathlib import Path
 
 from .._checks import DarsError
-from ._common import log, print_json, set_threads
+from ._common import COUNT, log, number, print_json, set_threads
+
+ONNX_FILES = ("metadata.json", "field.onnx", "field_fp16.onnx", "field_int8.onnx", "segment.onnx", "light.onnx",
+              "occupancy.npz", "background.npz")
+"""What ``dars export-onnx`` writes (:func:`export.field_onnx.export_onnx_models`)."""
+PRECISIONS = ("fp32", "fp16", "int8")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -27,13 +32,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("run", help="RUN directory (output of `dars train`)")
     q.add_argument("--out", required=True, help="output directory")
     q.add_argument("--precision", default="fp32", help="comma-separated: fp32 (always), fp16, int8")
-    q.add_argument("--opset", type=int, default=17, help="ONNX opset (default 17; the graphs need nothing newer)")
+    q.add_argument("--opset", type=number(int, min=13, max=17), default=17,
+                   help="ONNX opset, 13-17 (default 17; the graphs need nothing newer)")
     q.add_argument("--view", default="test:0", help="SPLIT:INDEX of the parity view (default test:0)")
     q.add_argument("--no-render-check", action="store_true", help="skip the rendered-view PSNR check")
     q.add_argument("--segmenter", default=None, help="segmenter.pt to export (default: the scene's priors/segment)")
     q.add_argument("--light-weights", default=None, help="light-network weights (default: the scene's light prior "
                                                           "or the shipped weights)")
-    q.add_argument("--threads", type=int, default=0, help="CPU threads for torch and ONNX Runtime (0: default)")
+    q.add_argument("--threads", type=COUNT, default=0, help="CPU threads for torch and ONNX Runtime (0: default)")
+    q.add_argument("--force", action="store_true", help="write into a non-empty folder beside its files")
     q.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
     q.set_defaults(func=cmd_export_onnx)
 
@@ -47,7 +54,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--out", default=None, help="--camera: output PNG (required); --segment: output directory")
     q.add_argument("--precision", default="fp32", choices=["fp32", "fp16", "int8"], help="field graph to use")
     q.add_argument("--sh", default=None, help="JSON file with {'coeffs': [[r,g,b] x 9]} to relight with")
-    q.add_argument("--threads", type=int, default=0, help="ONNX Runtime threads (0: its default)")
+    q.add_argument("--threads", type=COUNT, default=0, help="ONNX Runtime threads (0: its default)")
+    q.add_argument("--force", action="store_true",
+                   help="--camera: replace --out (and its sibling images); --segment: write into a non-empty folder")
     q.add_argument("--json", action="store_true", help="machine-readable output on stdout")
     q.set_defaults(func=cmd_infer)
 
@@ -60,17 +69,31 @@ def _parse_view(spec: str) -> tuple[str, int]:
 
 
 def cmd_export_onnx(args: argparse.Namespace) -> int:
-    from export.field_onnx import FieldExportConfig, export_onnx_models
+    from ..outputs import OutputDir
+    from ..train.folder import find_run
 
-    set_threads(args.threads)
     precision = tuple(p.strip() for p in args.precision.split(",") if p.strip())
+    bad = [p for p in precision if p not in PRECISIONS]
+    if bad:
+        raise DarsError(f"--precision {args.precision}: unknown {', '.join(map(repr, bad))}; choose from "
+                        f"{', '.join(PRECISIONS)} (comma-separated)")
     if "fp32" not in precision:
         precision = ("fp32",) + precision
     split, index = _parse_view(args.view)
+    for option, path in (("--segmenter", args.segmenter), ("--light-weights", args.light_weights)):
+        if path and not Path(path).is_file():
+            raise DarsError(f"{option} {path}: file not found")
+    find_run(args.run)
+    folder = OutputDir(args.out, "export-onnx", force=args.force).check(ONNX_FILES)
+
+    from export.field_onnx import FieldExportConfig, export_onnx_models
+
+    set_threads(args.threads)
     cfg = FieldExportConfig(parity_split=split, parity_index=index, check_render=not args.no_render_check,
                             threads=args.threads, segmenter=args.segmenter, light_model=args.light_weights)
-    rep = export_onnx_models(args.run, args.out, opset=args.opset, precision=precision, cfg=cfg,
-                             log=log if not args.json else (lambda m: None))
+    with folder:
+        rep = export_onnx_models(args.run, folder.path, opset=args.opset, precision=precision, cfg=cfg,
+                                 log=log if not args.json else (lambda m: None))
     d = rep.to_dict()
     if args.json:
         print_json(d, default=str)
@@ -103,13 +126,19 @@ def _fmt(errs: dict) -> str:
     return f"max {errs[worst]:.2e} ({worst})"
 
 
+def _parse_camera(spec: str) -> tuple[str, str, int]:
+    """``SCENE:SPLIT:INDEX`` -> its parts (nothing is loaded)."""
+    parts = spec.rsplit(":", 2)
+    if len(parts) != 3 or not parts[2].isdigit():
+        raise DarsError(f"--camera {spec!r}: expected SCENE:SPLIT:INDEX, e.g. samples/gallery:test:0")
+    return parts[0], parts[1], int(parts[2])
+
+
 def _camera(spec: str):
     from ..pinhole import PinholeCamera
     from ..scene import load_scene
 
-    parts = spec.rsplit(":", 2)
-    if len(parts) != 3 or not parts[2].isdigit():
-        raise DarsError(f"--camera {spec!r}: expected SCENE:SPLIT:INDEX, e.g. samples/gallery:test:0")
+    parts = _parse_camera(spec)
     scene = load_scene(parts[0], parts[1])
     i = int(parts[2])
     if not 0 <= i < len(scene):
@@ -154,19 +183,22 @@ def _infer_camera(args, threads) -> int:
     from export import infer
 
     from ..io import write_png
-    from ..visualise import render_output_images
+    from ..outputs import check_output_file
+    from ..visualise import OUTPUT_NAMES, render_output_images
 
     if not args.out:
         raise DarsError("--camera needs --out PNG (the rendered colour; other outputs are written beside it)")
+    out = Path(args.out)
+    siblings = [out.with_name(f"{out.stem}_{name}.png") for name in OUTPUT_NAMES if name != "rgb"]
+    check_output_file(out, args.force, suffixes=(".png",), siblings=siblings if out.suffix.lower() == ".png" else ())
+    _parse_camera(args.camera)
+    sh = _read_sh(args.sh)
     model = infer.load_model(args.dir, args.precision, threads)  # checks DIR before the scene is loaded
     cam, scene, i = _camera(args.camera)
     t0 = time.perf_counter()
-    outs = infer.render_view(model, cam, sh=_read_sh(args.sh))
+    outs = infer.render_view(model, cam, sh=sh)
     seconds = time.perf_counter() - t0
     imgs = render_output_images(outs, srgb=bool(model.metadata.get("srgb", True)))
-    out = Path(args.out)
-    if out.suffix.lower() != ".png":
-        raise DarsError(f"--out {out}: give a .png file")
     written = {}
     for name, img in imgs.items():
         p = out if name == "rgb" else out.with_name(f"{out.stem}_{name}.png")
@@ -197,17 +229,26 @@ def _infer_segment(args, threads) -> int:
     from ..io import write_png
     from ..visualise import colourise_labels
 
+    from ..outputs import OutputDir
+
+    folder = None
+    if args.out:
+        stems = [Path(ph).stem for ph in args.segment]
+        folder = OutputDir(args.out, "infer", force=args.force).check(
+            [f"{s}_labels{k}.png" for s in stems for k in ("", "_preview")])
     labels = infer.infer_segment(args.dir, args.segment, threads)
-    out_dir = Path(args.out) if args.out else None
+    out_dir = folder.path if folder is not None else None
     files = []
     counts = []
     for ph, lab in zip(args.segment, labels):
         counts.append({infer.SEMANTIC_CLASSES[c]: int((lab == c).sum()) for c in range(len(infer.SEMANTIC_CLASSES))})
-        if out_dir is not None:
-            stem = Path(ph).stem
-            write_png(out_dir / f"{stem}_labels.png", lab.astype(np.uint8))
-            write_png(out_dir / f"{stem}_labels_preview.png", colourise_labels(lab))
-            files.append(str(out_dir / f"{stem}_labels.png"))
+    if folder is not None:
+        with folder:
+            for ph, lab in zip(args.segment, labels):
+                stem = Path(ph).stem
+                write_png(out_dir / f"{stem}_labels.png", lab.astype(np.uint8))
+                write_png(out_dir / f"{stem}_labels_preview.png", colourise_labels(lab))
+                files.append(str(out_dir / f"{stem}_labels.png"))
     res = {"photos": list(args.segment), "pixels_per_class": counts, "files": files}
     if args.json:
         sys.stdout.write(json.dumps(res) + "\n")

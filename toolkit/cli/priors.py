@@ -1,8 +1,9 @@
 """``dars priors weights|segment|colour|light|sh-probe`` — the prior stages on a scene (:mod:`toolkit.priors`).
 
-Outputs go to ``--out DIR`` or ``<scene>/priors/<stage>``; a ``manifest.json`` lists what dars wrote there, and files
-it did not write are never overwritten unless ``--force``. ``sh-probe`` fits SH to an HDR probe file and writes
-``<stem>.sh.json`` beside it (or ``--out``; an existing file only with ``--force``).
+Outputs go to ``--out DIR`` or ``<scene>/priors/<stage>`` under the one output-folder policy (:mod:`toolkit.outputs`:
+``dars_manifest.json`` lists what dars wrote; files it did not write are never overwritten; ``--force`` writes beside
+them). ``sh-probe`` fits SH to an HDR probe file and prints it; ``--out FILE`` also writes the JSON (an existing file
+only with ``--force``). Nothing is ever written beside the input unless asked.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import sys
 from pathlib import Path
 
 from .._checks import DarsError
-from ._common import SCENE_HELP, positive_int, print_json
+from ._common import COUNT, FINITE, NONNEGATIVE, POSITIVE, SCENE_HELP, positive_int, print_json
 
 _LM = ["(0,0)", "(1,-1)", "(1,0)", "(1,1)", "(2,-2)", "(2,-1)", "(2,0)", "(2,1)", "(2,2)"]
 """(l, m) of the 9 SH coefficients, SPEC order (table rows)."""
@@ -27,10 +28,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
     q = stages.add_parser("weights", help="distortion weight maps W (eqs. 2-4, 8) + heat-map overlays")
     _common(q, "weights")
-    q.add_argument("--alpha", type=float, default=0.5, help="gradient weight (default 0.5)")
-    q.add_argument("--beta", type=float, default=0.3, help="semantic edge weight (default 0.3)")
-    q.add_argument("--gamma", type=float, default=0.2, help="metal mask weight (default 0.2)")
-    q.add_argument("--lambda-reg", type=float, default=0.3, help="smoothness weight of eq. 8 (default 0.3)")
+    q.add_argument("--alpha", type=NONNEGATIVE, default=0.5, help="gradient weight (default 0.5)")
+    q.add_argument("--beta", type=NONNEGATIVE, default=0.3, help="semantic edge weight (default 0.3)")
+    q.add_argument("--gamma", type=NONNEGATIVE, default=0.2, help="metal mask weight (default 0.2)")
+    q.add_argument("--lambda-reg", type=NONNEGATIVE, default=0.3, help="smoothness weight of eq. 8 (default 0.3)")
     q.add_argument("--labels", choices=["auto", "scene", "segment", "none"], default="auto",
                    help="labels for the semantic edges: scene's, predicted (priors/segment), or none (default: auto)")
     q.add_argument("--no-metal", action="store_true", help="ignore the scene's metal masks")
@@ -40,10 +41,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     _common(q, "segment")
     q.add_argument("--backend", choices=["provided", "builtin", "onnx"], default="provided")
     q.add_argument("--model", default=None, help="builtin: a trained segmenter.pt; onnx: the .onnx file")
-    q.add_argument("--train-every", type=int, default=4, help="builtin: train on every n-th labelled view (default 4)")
+    q.add_argument("--train-every", type=POSITIVE, default=4,
+                   help="builtin: train on every n-th labelled view (default 4)")
     q.add_argument("--eval-split", default="test", help="also report mIoU on this split if labelled ('none' to skip)")
-    q.add_argument("--steps", type=int, default=500, help="builtin: training steps (default 500)")
-    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--steps", type=POSITIVE, default=500, help="builtin: training steps (default 500)")
+    q.add_argument("--seed", type=COUNT, default=0)
     q.add_argument("--no-onnx", action="store_true", help="builtin: do not write segmenter.onnx")
     q.set_defaults(func=cmd_segment)
 
@@ -53,7 +55,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--gauge", choices=["median", "mean"], default="median",
                    help="median: the typical photo has gain 1 (default; robust to a few odd exposures); "
                         "mean: the geometric-mean gain is 1")
-    q.add_argument("--reference", type=int, default=None,
+    q.add_argument("--reference", type=COUNT, default=None,
                    help="fix this image's gain to 1 instead (overrides --gauge)")
     q.set_defaults(func=cmd_colour)
     _add_light(stages)
@@ -67,7 +69,8 @@ def _common(q: argparse.ArgumentParser, stage: str) -> None:
                    help="shrink the photos N times on load (default: 1; `dars train` reads maps made at another "
                         "--downscale, resized)")
     q.add_argument("--out", default=None, help=f"output directory (default: <scene>/priors/{stage})")
-    q.add_argument("--force", action="store_true", help="overwrite files in the output directory that dars did not write")
+    q.add_argument("--force", action="store_true",
+                   help="write into a non-empty folder beside its files (files dars did not write are never replaced)")
     q.add_argument("--json", action="store_true", help="print only JSON on stdout")
 
 
@@ -78,7 +81,7 @@ def _add_light(sub: argparse._SubParsersAction) -> None:
     _common(q, "light")
     q.add_argument("--weights", default=None, help="light-network weights (default: toolkit/weights/lightnet_small.pt)")
     q.add_argument("--reduce", choices=["mean", "median"], default="mean", help="combine per-image SH (default: mean)")
-    q.add_argument("--batch-size", type=int, default=32)
+    q.add_argument("--batch-size", type=POSITIVE, default=32)
     q.set_defaults(func=cmd_light)
 
 
@@ -92,15 +95,26 @@ def _add_sh_probe(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("file", help="environment map, Radiance .hdr or OpenEXR .exr")
     p.add_argument("--layout", choices=["latlong", "angular"], default="latlong", help="map parametrisation (default: latlong)")
-    p.add_argument("--rotate-x", type=float, default=0.0, metavar="DEG", help="rotate map directions about +x by DEG degrees before fitting (90 for a +y-up probe)")
-    p.add_argument("--out", default=None, help="output JSON path (default: <stem>.sh.json beside FILE)")
-    p.add_argument("--no-save", action="store_true", help="do not write the JSON file, only print")
-    p.add_argument("--force", action="store_true", help="overwrite an existing output file")
+    p.add_argument("--rotate-x", type=FINITE, default=0.0, metavar="DEG",
+                   help="rotate map directions about +x by DEG degrees before fitting (90 for a +y-up probe)")
+    p.add_argument("--out", default=None, help="also write the JSON document to this file (default: only print)")
+    p.add_argument("--no-save", action="store_true", help="do not write a file, only print (the default)")
+    p.add_argument("--force", action="store_true", help="replace --out if it exists")
     p.add_argument("--json", action="store_true", help="print only machine-readable JSON on stdout")
     p.set_defaults(func=cmd_sh_probe)
 
 
 # ============================================================================ handlers
+def _out(args: argparse.Namespace, scene, stage: str):
+    """The stage's output folder (``--out`` or ``<scene>/priors/<stage>``), checked before any work."""
+    from ..priors import OutputDir
+
+    if args.out:
+        return OutputDir(args.out, stage, force=args.force).check()
+    option = f"the default output folder (SCENE/priors/{stage}; --out picks another)"
+    return OutputDir(scene.priors_dir(stage), stage, force=args.force, option=option).check()
+
+
 def cmd_weights(args: argparse.Namespace) -> int:
     from ..edges import WeightMapConfig
     from ..priors import priors_weights
@@ -108,7 +122,8 @@ def cmd_weights(args: argparse.Namespace) -> int:
 
     scene = load_scene(args.scene, args.split, downscale=args.downscale)
     cfg = WeightMapConfig(alpha=args.alpha, beta=args.beta, gamma=args.gamma, lambda_reg=args.lambda_reg)
-    s = priors_weights(scene, args.out, cfg, labels=args.labels, use_metal=not args.no_metal, force=args.force)
+    with _out(args, scene, "weights").guard() as out:
+        s = priors_weights(scene, out, cfg, labels=args.labels, use_metal=not args.no_metal)
     if args.json:
         print_json(s)
         return 0
@@ -133,8 +148,11 @@ def cmd_segment(args: argparse.Namespace) -> int:
     if args.eval_split != "none" and args.eval_split != args.split and args.eval_split in list_splits(args.scene):
         eval_scene = load_scene(args.scene, args.eval_split, downscale=args.downscale)
     tcfg = TrainSegmenterConfig(steps=args.steps, seed=args.seed, progress=True) if args.backend == "builtin" else None
-    info = priors_segment(scene, args.out, args.backend, args.model, args.train_every, eval_scene, tcfg,
-                          export_onnx=None if args.no_onnx else export_segmenter_onnx, force=args.force)
+    if args.model and not Path(args.model).is_file():
+        raise DarsError(f"--model {args.model}: file not found")
+    with _out(args, scene, "segment").guard() as out:
+        info = priors_segment(scene, out, args.backend, args.model, args.train_every, eval_scene, tcfg,
+                              export_onnx=None if args.no_onnx else export_segmenter_onnx)
     if args.json:
         print_json(info)
         return 0
@@ -158,7 +176,11 @@ def cmd_colour(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene, args.split, downscale=args.downscale)
     cfg = ColourConfig(detector=args.detector, gauge="reference" if args.reference is not None else args.gauge,
                        reference=args.reference or 0, srgb=scene.srgb, progress=True)
-    d = priors_colour(scene, args.out, cfg, force=args.force)
+    if args.reference is not None and args.reference >= len(scene):
+        raise DarsError(f"--reference {args.reference}: split '{scene.split}' has {len(scene)} images "
+                        f"(0-{len(scene) - 1})")
+    with _out(args, scene, "colour").guard() as out:
+        d = priors_colour(scene, out, cfg)
     if args.json:
         print_json(d)
         return 0
@@ -178,7 +200,8 @@ def cmd_light(args: argparse.Namespace) -> int:
     from ..scene import load_scene
 
     scene = load_scene(args.scene, args.split, downscale=args.downscale)
-    info = priors_light(scene, args.out, args.weights, args.reduce, args.batch_size, args.force)
+    with _out(args, scene, "light").guard() as out:
+        info = priors_light(scene, out, args.weights, args.reduce, args.batch_size)
     if args.json:
         print_json(info)
         return 0
@@ -214,27 +237,16 @@ def _sh_table(payload: dict) -> str:
 
 def cmd_sh_probe(args: argparse.Namespace) -> int:
     from ..io import write_json
+    from ..outputs import check_output_file
     from ..priors import sh_probe_json
 
     path = Path(args.file)
-    try:
-        payload = sh_probe_json(path, args.layout, float(args.rotate_x))
-    except DarsError as e:
-        print(f"dars priors sh-probe: error: {e}", file=sys.stderr)
-        return 2
     out = None
-    if not getattr(args, "no_save", False):
-        out = Path(args.out) if args.out else path.with_name(path.stem + ".sh.json")
-        if out.exists() and not args.force:
-            print(f"dars priors sh-probe: error: {out} exists; pass --force to overwrite it or --out to write elsewhere",
-                  file=sys.stderr)
-            return 2
-        try:
-            write_json(out, payload)
-        except OSError as e:
-            print(f"dars priors sh-probe: error: could not write {out}: {e} (use --out or --no-save)",
-                  file=sys.stderr)
-            return 2
+    if args.out and not args.no_save:
+        out = check_output_file(args.out, args.force, suffixes=(".json",))
+    payload = sh_probe_json(path, args.layout, float(args.rotate_x))
+    if out is not None:
+        write_json(out, payload)
     if args.json:
         sys.stdout.write(json.dumps(payload) + "\n")
     else:

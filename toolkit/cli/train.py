@@ -8,39 +8,51 @@ import json
 from pathlib import Path
 
 from .._checks import DarsError
-from ._common import positive_int, set_threads
+from ._common import COUNT, FINITE, NONNEGATIVE, number, positive_int, set_threads
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     q = sub.add_parser("train", help="train the decoupled field on a scene (two-stage, checkpointed)")
     q.add_argument("scene", nargs="?", help="scene (not needed with --resume)")
-    q.add_argument("--out", required=True, help="run directory")
-    q.add_argument("--preset", default="fast", choices=["fast", "paper"])
+    q.add_argument("--out", required=True, help="run directory (new or empty; see --resume and --force)")
+    q.add_argument("--preset", default=None, choices=["fast", "paper"], help="named configuration (default: fast)")
     g = q.add_mutually_exclusive_group()
-    g.add_argument("--minutes", type=float, default=0.0, help="wall-clock training budget")
-    g.add_argument("--steps", type=int, default=0, help="training steps")
-    q.add_argument("--resume", action="store_true", help="continue the run in --out")
-    q.add_argument("--seed", type=int, default=0)
-    q.add_argument("--split", default="train")
+    g.add_argument("--minutes", type=NONNEGATIVE, default=0.0,
+                   help="wall-clock budget: turned into a step count after timing the first steps on this machine "
+                        "(logged; --steps N with that count reproduces the run exactly)")
+    g.add_argument("--steps", type=COUNT, default=0, help="training steps (every schedule is in steps)")
+    q.add_argument("--resume", action="store_true",
+                   help="continue the run in --out with its saved scene and settings (--steps/--minutes may extend it)")
+    q.add_argument("--force", action="store_true",
+                   help="start again in a folder holding a run (replaces its checkpoint, config and log), or write "
+                        "into a non-empty folder beside its files (files dars did not write are never touched)")
+    q.add_argument("--seed", type=COUNT, default=None, help="random seed (default: 0)")
+    q.add_argument("--split", default=None, help="split to train on (default: train)")
     q.add_argument("--downscale", type=positive_int, default=1, metavar="N",
                    help="shrink the photos N times on load (default: 1); memory and time fall with N^2. Recorded in "
-                        "the run: render, relight and eval use the same size")
+                        "the run: render, relight, eval and --resume use the same size")
     q.add_argument("--priors", help="directory holding the prior stages' outputs (default: <scene>/priors)")
     q.add_argument("--no-dars", action="store_true", help="ablation: uniform rays + hierarchical sampling")
-    q.add_argument("--no-semantics", action="store_true", help="ablation: no semantic guidance")
+    q.add_argument("--no-semantics", action="store_true",
+                   help="ablation: no semantic input (no L_semantic, no label edges in W; L_mat keeps its class terms)")
     q.add_argument("--fixed-light", action="store_true", help="ablation: l_env fixed at its initial value")
     q.add_argument("--no-mat-loss", action="store_true", help="ablation: no L_mat")
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
     q.add_argument("--albedo-supervision", action="store_true",
                    help="use the scene's ground-truth albedo maps in L_mat (eq. 20); makes albedo MAE circular")
-    q.add_argument("--scene-type", default="auto", choices=["auto", "room", "object"],
-                   help="room: photos taken inside an enclosed room (walls start as an opaque layer on the box faces "
-                        "after stage a); object: transparent start everywhere; auto: room when most cameras are "
-                        "inside the scene box and the photos are not RGBA")
+    q.add_argument("--scene-type", default="auto", choices=["auto", "unbounded", "room", "object"],
+                   help="unbounded (room is the same): space beyond the scene box is contracted and modelled too — "
+                        "rooms, galleries, captures with surroundings; object: an isolated object on a known "
+                        "background colour (RGBA with transparency); auto: object when the photos have real "
+                        "transparency, else unbounded")
+    q.add_argument("--labels", default="predicted", choices=["predicted", "ground-truth", "none"],
+                   help="semantic labels and metal masks: predicted by the segmentation prior (default; none when "
+                        "`dars priors segment` was not run), the scene's ground-truth maps (experiments only: "
+                        "recorded in the run and its reports), or none")
     q.add_argument("--snapshots", default="", help="comma-separated minutes at which to save the field, e.g. 2,5,10")
-    q.add_argument("--batch-rays", type=int, default=0, help="override rays per step")
+    q.add_argument("--batch-rays", type=COUNT, default=0, help="override rays per step (≥ 16)")
     q.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
-    q.add_argument("--threads", type=int, default=0, help="CPU threads (default: all cores)")
+    q.add_argument("--threads", type=COUNT, default=0, help="CPU threads (default: all cores)")
     q.add_argument("--quiet", action="store_true", help="no progress bar")
     q.set_defaults(func=cmd_train)
 
@@ -49,9 +61,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--out", required=True, help="output directory")
     q.add_argument("--split", default="test", help="split of the run's scene to render")
     q.add_argument("--cameras", help="a transforms JSON whose frames are the camera path (instead of --split)")
-    q.add_argument("--orbit", type=int, default=0, help="render N views on an orbit around the scene instead")
+    q.add_argument("--orbit", type=COUNT, default=0, help="render N views on an orbit around the scene instead")
     q.add_argument("--checkpoint", help="a snapshot checkpoint instead of the run's last one")
-    q.add_argument("--limit", type=int, default=0, help="render at most N views")
+    q.add_argument("--limit", type=COUNT, default=0, help="render at most N views")
+    q.add_argument("--force", action="store_true", help="write into a non-empty folder beside its files")
     q.add_argument("--json", action="store_true")
     q.set_defaults(func=cmd_render)
 
@@ -61,8 +74,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--probe", help="HDR environment (.hdr/.exr, lat-long in the SPEC convention unless --layout)")
     g.add_argument("--sh", help='JSON with {"coeffs": [[r, g, b] x 9]} (e.g. from `dars priors sh-probe`)')
     q.add_argument("--layout", default="latlong", choices=["latlong", "angular"])
-    q.add_argument("--probe-rotate-x", type=float, default=0.0, help="rotate a +y-up probe into +z-up (90)")
-    q.add_argument("--intensity", type=float, default=1.0, help="scale the new light")
+    q.add_argument("--probe-rotate-x", type=FINITE, default=0.0, help="rotate a +y-up probe into +z-up (90)")
+    q.add_argument("--intensity", type=NONNEGATIVE, default=1.0, help="scale the new light")
     q.add_argument("--residual", default="scale", choices=["scale", "keep", "drop"],
                    help="what to do with the learnt local light (shadows): scale with the DC ratio, keep, drop")
     q.add_argument("--edit", action="append", help="material edit CLASS:KEY=VALUE[,...] (repeatable), "
@@ -70,22 +83,89 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--out", required=True)
     q.add_argument("--split", default="test")
     q.add_argument("--cameras")
-    q.add_argument("--orbit", type=int, default=0)
+    q.add_argument("--orbit", type=COUNT, default=0)
     q.add_argument("--checkpoint")
-    q.add_argument("--limit", type=int, default=0)
+    q.add_argument("--limit", type=COUNT, default=0)
+    q.add_argument("--force", action="store_true", help="write into a non-empty folder beside its files")
     q.add_argument("--json", action="store_true")
     q.set_defaults(func=cmd_relight)
 
 
-def cmd_train(args: argparse.Namespace) -> int:
-    from ..train import make_config, train
+_RESUME_OPTIONS = (
+    # (option, args attribute, the saved value of a run (config.json as a dict), the value asked for)
+    ("--preset", "preset", lambda m: m["config"].get("preset"), lambda v: v),
+    ("--seed", "seed", lambda m: m["config"].get("seed"), lambda v: v),
+    ("--split", "split", lambda m: m.get("split", "train"), lambda v: v),
+    ("--scene-type", "scene_type", lambda m: m["config"].get("scene_type"), lambda v: None if v == "auto" else v),
+    ("--no-dars", "no_dars", lambda m: not m["config"].get("sampler", {}).get("dars", True), lambda v: v or None),
+    ("--no-semantics", "no_semantics", lambda m: not m["config"].get("semantics", True), lambda v: v or None),
+    ("--fixed-light", "fixed_light", lambda m: bool(m["config"].get("fixed_light")), lambda v: v or None),
+    ("--no-mat-loss", "no_mat_loss", lambda m: m["config"].get("losses", {}).get("mat", 1.0) == 0, lambda v: v or None),
+    ("--baseline", "baseline", lambda m: "nerf" if m["config"].get("shading") == "radiance" else None, lambda v: v),
+    ("--albedo-supervision", "albedo_supervision", lambda m: bool(m["config"].get("albedo_supervision")),
+     lambda v: v or None),
+    ("--batch-rays", "batch_rays", lambda m: m["config"].get("batch_rays"), lambda v: v or None),
+    ("--labels", "labels", lambda m: m["config"].get("labels", "predicted"), lambda v: None if v == "predicted" else v),
+)
+"""Options that define a run: with ``--resume`` they must match the saved run (only its length may grow)."""
 
+
+def _check_resume(args: argparse.Namespace) -> None:
+    """``--resume`` continues the run as it was started: refuse a SCENE, ``--preset`` ... that differ from it."""
+    from ..train.folder import read_run_meta
+
+    out = Path(args.out)
+    if not (out / "checkpoint.pt").is_file():
+        return  # train() says what is missing
+    meta = read_run_meta(out)
+    differ = []
+    if args.scene and Path(args.scene).resolve() != Path(meta["scene"]).resolve():
+        differ.append(f"scene {args.scene} (the run's: {meta['scene']})")
+    if args.priors and (meta.get("priors_root") is None
+                        or Path(args.priors).resolve() != Path(meta["priors_root"]).resolve()):
+        differ.append(f"--priors {args.priors} (the run's: {meta.get('priors_root') or 'the scene priors'})")
+    for option, attr, saved, asked in _RESUME_OPTIONS:
+        want = asked(getattr(args, attr))
+        if want is None:
+            continue
+        have = saved(meta)
+        if want != have:
+            shown = "on" if want is True else want
+            differ.append(f"{option} {shown} (the run's: {'on' if have is True else 'off' if have is False else have})")
+    if differ:
+        raise DarsError(f"--resume continues {out} with the settings it was started with, but you asked for "
+                        f"{'; '.join(differ)}. Resume without those options (only --steps/--minutes may extend the "
+                        f"run), or start a new run with them: another --out, or --force to replace {out}")
+
+
+def cmd_train(args: argparse.Namespace) -> int:
     set_threads(args.threads)
     if not args.resume and not args.scene:
         raise DarsError("give a SCENE (or --resume an existing run)")
     if not args.resume and not args.minutes and not args.steps:
         raise DarsError("give a training length: --minutes M or --steps N")
-    overrides: dict = {"seed": args.seed, "device": args.device, "minutes": args.minutes, "steps": args.steps}
+    if args.resume and args.force:
+        raise DarsError("--resume continues the run in --out and --force starts it again: give one of them")
+    if args.batch_rays and args.batch_rays < 16:
+        raise DarsError(f"--batch-rays {args.batch_rays}: give at least 16 rays per step (or leave it out)")
+    snapshots = ()
+    if args.snapshots:
+        try:
+            snapshots = tuple(float(x) for x in args.snapshots.split(",") if x.strip())
+        except ValueError as e:
+            raise DarsError(f"--snapshots must be comma-separated minutes, got {args.snapshots!r}") from e
+        if not all(0 < m < float("inf") for m in snapshots):
+            raise DarsError(f"--snapshots {args.snapshots}: every milestone must be a positive, finite number of "
+                            "minutes")
+    if args.scene and not Path(args.scene).exists():
+        raise DarsError(f"scene not found: {args.scene}")
+    if args.resume:
+        _check_resume(args)
+
+    from ..train import make_config, train
+
+    seed = 0 if args.seed is None else args.seed
+    overrides: dict = {"seed": seed, "device": args.device, "minutes": args.minutes, "steps": args.steps}
     if args.scene_type != "auto":
         overrides["scene_type"] = args.scene_type
     if args.no_dars:
@@ -100,47 +180,61 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides["baseline"] = args.baseline
     if args.albedo_supervision:
         overrides["albedo_supervision"] = True
+    if args.labels != "predicted":
+        overrides["labels"] = args.labels
     if args.batch_rays:
         overrides["batch_rays"] = args.batch_rays
-    if args.snapshots:
-        try:
-            overrides["snapshot_minutes"] = tuple(float(x) for x in args.snapshots.split(",") if x.strip())
-        except ValueError as e:
-            raise DarsError(f"--snapshots must be comma-separated minutes, got {args.snapshots!r}") from e
-    cfg = make_config(args.preset, **overrides)
-    ck = train(args.scene, args.out, cfg, resume=args.resume, split=args.split, progress_bar=not args.quiet,
-               priors_root=args.priors, downscale=args.downscale)
+    if snapshots:
+        overrides["snapshot_minutes"] = snapshots
+    cfg = make_config(args.preset or "fast", **overrides)
+    ck = train(args.scene, args.out, cfg, resume=args.resume, split=args.split or "train",
+               progress_bar=not args.quiet, priors_root=args.priors, force=args.force, downscale=args.downscale)
     print(f"run: {Path(args.out)}  checkpoint: {ck}")
     return 0
 
 
-def _cameras_for(args, run):
-    """(cameras, file keys) of ``--cameras FILE``, ``--orbit N`` or the run's scene ``--split``."""
-    from ..cameras import orbit_cameras
+def _views(args):
+    """(cameras or None, file keys) of ``--cameras FILE``, ``--orbit N`` (cameras: None until the run is loaded) or
+    the run's scene ``--split``; read before the run, so a bad camera file or split fails before any heavy work."""
     from ..scene import load_scene
+    from ..train.folder import find_run
 
-    if getattr(args, "cameras", None):
+    meta, _ = find_run(args.run, args.checkpoint)
+    if args.cameras:
         scene = load_scene(args.cameras, "all")
-    elif getattr(args, "orbit", 0):
-        cams = orbit_cameras(run.train_scene.cameras, run.train_scene.aabb, args.orbit)
-        return cams, [f"orbit_{i:03d}" for i in range(len(cams))]
+    elif args.orbit:
+        return None, [f"orbit_{i:03d}" for i in range(args.orbit)]
     else:
-        scene = run.load_split(args.split)
+        scene = load_scene(meta["scene"], args.split, downscale=int(meta.get("downscale", 1)))
     return scene.cameras, [f.key for f in scene.frames]
 
 
+def _render_out(args, keys: list[str], extra: tuple[str, ...] = ()):
+    """The output folder of render / relight, checked for every file the views will write."""
+    from ..outputs import OutputDir
+    from ..visualise import OUTPUT_NAMES
+
+    n = len(keys) if not args.limit else min(args.limit, len(keys))
+    planned = [f"{k}_{name}.png" for k in keys[:n] for name in OUTPUT_NAMES] + list(extra)
+    return OutputDir(args.out, args.command, force=args.force).check(planned)
+
+
 def cmd_render(args: argparse.Namespace) -> int:
+    from ..cameras import orbit_cameras
     from ..train.run import load_run, render_views
 
+    cams, keys = _views(args)
+    out = _render_out(args, keys)
     run = load_run(args.run, args.checkpoint)
-    cams, keys = _cameras_for(args, run)
-    out = Path(args.out)
+    if cams is None:
+        cams = orbit_cameras(run.train_scene.cameras, run.train_scene.aabb, args.orbit)
     n = len(cams) if not args.limit else min(args.limit, len(cams))
-    written = render_views(run, cams, keys, out, limit=args.limit, progress=not args.json)
+    with out:
+        written = render_views(run, cams, keys, out.path, limit=args.limit, progress=not args.json)
     if args.json:
         print(json.dumps({"views": n, "files": written}))
     else:
-        print(f"rendered {n} views ({len(written)} images) into {out}")
+        print(f"rendered {n} views ({len(written)} images) into {out.path}")
     return 0
 
 
@@ -148,16 +242,14 @@ def cmd_relight(args: argparse.Namespace) -> int:
     import torch
 
     from ..io import write_json
+    from ..cameras import orbit_cameras
     from ..relight import parse_material_edit, relight_hook
-    from ..train.run import load_run, render_views
     from ..sh import fit_sh_probe, read_envmap, read_sh_json, rotation_x
+    from ..train.run import load_run, render_views
 
     if not args.probe and not args.sh and not args.edit:
         raise DarsError("give a new light (--probe HDR or --sh JSON) and/or material edits (--edit CLASS:KEY=VALUE)")
-    run = load_run(args.run, args.checkpoint)
-    if run.cfg.shading != "pbr":
-        raise DarsError(f"{args.run} is a radiance (standard NeRF) run: it has no materials or light to change")
-    new_sh = None
+    new_sh = None  # the light and the edits are read before the run: a bad file fails before any heavy work
     if args.probe:
         env = read_envmap(args.probe)
         rot = rotation_x(args.probe_rotate_x) if args.probe_rotate_x else None
@@ -167,16 +259,22 @@ def cmd_relight(args: argparse.Namespace) -> int:
     if new_sh is not None:
         new_sh = new_sh * args.intensity
     edits = [parse_material_edit(e) for e in (args.edit or [])]
+    cams, keys = _views(args)
+    out = _render_out(args, keys, extra=("relight.json",))
+    run = load_run(args.run, args.checkpoint)
+    if run.cfg.shading != "pbr":
+        raise DarsError(f"{args.run} is a radiance (standard NeRF) run: it has no materials or light to change")
     hook = relight_hook(run.l_env, new_sh, edits, args.residual)
-    cams, keys = _cameras_for(args, run)
-    out = Path(args.out)
+    if cams is None:
+        cams = orbit_cameras(run.train_scene.cameras, run.train_scene.aabb, args.orbit)
     n = len(cams) if not args.limit else min(args.limit, len(cams))
-    written = render_views(run, cams, keys, out, limit=args.limit, outputs_hook=hook, progress=not args.json)
-    write_json(out / "relight.json", {"run": str(args.run), "sh": None if new_sh is None else new_sh.tolist(),
-                                      "original_sh": run.l_env.tolist(), "residual": args.residual,
-                                      "edits": [e.__dict__ for e in edits]})
+    with out:
+        written = render_views(run, cams, keys, out.path, limit=args.limit, outputs_hook=hook, progress=not args.json)
+        write_json(out.path / "relight.json", {"run": str(args.run), "sh": None if new_sh is None else new_sh.tolist(),
+                                               "original_sh": run.l_env.tolist(), "residual": args.residual,
+                                               "edits": [e.__dict__ for e in edits]})
     if args.json:
         print(json.dumps({"views": n, "files": written}))
     else:
-        print(f"relit {n} views ({len(written)} images) into {out}")
+        print(f"relit {n} views ({len(written)} images) into {out.path}")
     return 0

@@ -21,7 +21,11 @@ import time
 from pathlib import Path
 
 from .._checks import DarsError
+from ._common import FINITE, number
 from .asset import add_bake_options, add_mesh_options, asset_config, export_glb
+
+WEB_FILES = ("index.html", "main.js", "scene.glb", "scene_light.json", "dars_shading.js", "vendor/")
+"""What ``dars export-web`` writes into OUTDIR (:func:`viewers.web.export_web`)."""
 
 
 def _add_light_options(q: argparse.ArgumentParser) -> None:
@@ -34,7 +38,7 @@ def _add_light_options(q: argparse.ArgumentParser) -> None:
                    help="--probe parametrisation: SPEC lat-long (world frame) or an angular light probe (+y up)")
     q.add_argument("--camera", default=None, metavar="SCENE:SPLIT:INDEX",
                    help="view from a scene camera, e.g. samples/gallery:test:0 (default: framing the asset)")
-    q.add_argument("--exposure", type=float, default=0.0, help="exposure in stops (colour x 2^EV)")
+    q.add_argument("--exposure", type=FINITE, default=0.0, help="exposure in stops (colour x 2^EV)")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -42,10 +46,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("asset", help="a .glb file or an `export-asset` output directory (with scene.glb)")
     q.add_argument("--headless", action="store_true", help="render offscreen (EGL) to --out instead of a window")
     q.add_argument("--out", default=None, help="PNG to write (implies --headless)")
+    q.add_argument("--force", action="store_true", help="replace --out if it exists")
     q.add_argument("--mode", default="lit", choices=("lit", "albedo", "roughness", "metallic", "normals", "semantics"))
     _add_light_options(q)
-    q.add_argument("--width", type=int, default=None, help="image width (default: the camera's, else 1280)")
-    q.add_argument("--height", type=int, default=None, help="image height (default: keeps the camera's aspect, else 720)")
+    q.add_argument("--width", type=number(int, min=1, max=16384), default=None,
+                   help="image width (default: the camera's, else 1280)")
+    q.add_argument("--height", type=number(int, min=1, max=16384), default=None,
+                   help="image height (default: keeps the camera's aspect, else 720)")
     q.add_argument("--background", choices=("sh", "colour"), default="sh",
                    help="lit mode: the SH environment (default) or a flat grey behind the mesh")
     q.add_argument("--screenshots", default=".", help="window mode: directory for screenshot PNGs (key p / F12)")
@@ -58,6 +65,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     _add_light_options(q)
     q.add_argument("--title", default="dars — WebXR preview", help="page title")
     q.add_argument("--no-specular", action="store_true", help="diffuse SH lighting only")
+    q.add_argument("--force", action="store_true", help="write into a non-empty OUTDIR beside its files")
     add_mesh_options(q)
     add_bake_options(q)
     q.add_argument("--json", action="store_true", help="machine-readable result on stdout")
@@ -88,19 +96,18 @@ def cmd_view(args: argparse.Namespace) -> int:
     from viewers.preview import PreviewConfig, resolve_asset_path
 
     from ..io import write_png
+    from ..outputs import check_output_file
 
-    for name in ("width", "height"):
-        v = getattr(args, name)
-        if v is not None and not 1 <= v <= 16384:
-            raise DarsError(f"--{name} {v} must be in [1, 16384]")
+    headless = args.headless or args.out is not None
+    if headless and not args.out:
+        raise DarsError("--headless needs --out PNG (the image to write)")
+    if args.out:
+        check_output_file(args.out, args.force, suffixes=(".png",))
     path = resolve_asset_path(args.asset)
     asset = load_glb(path)
     lights, source = _lights(asset, args)
     cfg = PreviewConfig(mode=args.mode, exposure=args.exposure, background=args.background)
     camera = _camera(args, args.width)
-    headless = args.headless or args.out is not None
-    if headless and not args.out:
-        raise DarsError("--headless needs --out PNG (the image to write)")
     if headless:
         from viewers.preview import render_preview
 
@@ -131,7 +138,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
-def _glb_for(source: Path, out: Path, args) -> tuple[Path, dict]:
+def _glb_for(source: Path, out: Path, args, cfg) -> tuple[Path, dict]:
     """The GLB to publish: given, inside an export-asset directory, or exported from a RUN into OUTDIR."""
     if source.is_file():
         return source, {}
@@ -140,7 +147,6 @@ def _glb_for(source: Path, out: Path, args) -> tuple[Path, dict]:
     if (source / "checkpoint.pt").is_file() and (source / "config.json").is_file():
         from ..asset import build_asset
 
-        cfg = asset_config(args)
         print(f"[dars] {source} is a training run: exporting its asset first (mesh + bake)", file=sys.stderr)
         asset = build_asset(source, cfg)
         out.mkdir(parents=True, exist_ok=True)
@@ -149,20 +155,48 @@ def _glb_for(source: Path, out: Path, args) -> tuple[Path, dict]:
                     "(with config.json and checkpoint.pt)")
 
 
+def _check_light_files(args) -> None:
+    """Read ``--sh`` / ``--probe`` once before any heavy work, so a bad file fails first."""
+    if args.sh:
+        from ..sh import read_sh_json
+
+        read_sh_json(args.sh)
+    if args.probe:
+        from ..sh import read_envmap
+
+        read_envmap(args.probe)
+
+
 def cmd_export_web(args: argparse.Namespace) -> int:
     from export.gltf import load_glb
     from viewers.lighting import resolve_sh
     from viewers.web import WebConfig, export_web
 
-    source, out = Path(args.source), Path(args.out)
+    from ..outputs import OutputDir
+
+    source = Path(args.source)
     if not source.exists():
         raise DarsError(f"{source} not found (give a .glb, an export-asset directory or a RUN directory)")
-    glb, asset_stats = _glb_for(source, out, args)
-    asset = load_glb(glb)
-    sh, light = resolve_sh(asset, args.sh, args.probe, args.probe_layout)
+    cfg_asset = asset_config(args)
+    folder = OutputDir(args.out, "export-web", force=args.force, option="OUTDIR").check(WEB_FILES)
+    _check_light_files(args)
     camera = _camera(args, None)
+    if source.is_file() or (source / "scene.glb").is_file():
+        load_glb(source if source.is_file() else source / "scene.glb")  # a damaged GLB fails before OUTDIR is made
+    elif (source / "checkpoint.pt").is_file() and (source / "config.json").is_file():
+        from ..train.folder import find_run
+
+        find_run(source)
+    else:
+        raise DarsError(f"{source}: expected a .glb, an `export-asset` directory (with scene.glb) or a RUN directory "
+                        "(with config.json and checkpoint.pt)")
     cfg = WebConfig(title=args.title, exposure=args.exposure, specular=not args.no_specular)
-    res = export_web(glb, out, sh=sh, camera=camera, cfg=cfg, source=light)
+    with folder:
+        out = folder.path
+        glb, asset_stats = _glb_for(source, out, args, cfg_asset)
+        asset = load_glb(glb)
+        sh, light = resolve_sh(asset, args.sh, args.probe, args.probe_layout)
+        res = export_web(glb, out, sh=sh, camera=camera, cfg=cfg, source=light)
     result = {"out": str(res.out_dir), "index": str(res.index), "glb": str(res.glb), "light_json": str(res.light_json),
               "light": light, "three_version": res.three_version, "vendor_files": list(res.vendor_files),
               "serve": f"python -m http.server --directory {res.out_dir} 8000  # then open http://localhost:8000/"}

@@ -66,7 +66,8 @@ def load_mesh(path: str | Path) -> Mesh:
     try:
         tm = trimesh.load(path, process=False, force="mesh")
     except Exception as e:  # noqa: BLE001 - any decode failure is a corrupt file
-        raise SceneError(f"mesh file {path} could not be read: {e}") from e
+        raise SceneError(f"mesh file {path} could not be read ({type(e).__name__}: {e}): it is damaged or not a mesh; "
+                         "give a PLY/OBJ/GLB mesh (e.g. RUN/mesh/mesh.ply from `dars mesh RUN`)") from e
     colors = None
     if tm.visual.kind == "vertex":
         colors = np.asarray(tm.visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0

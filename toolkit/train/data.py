@@ -33,7 +33,7 @@ import torch
 
 from ..io import srgb_to_linear
 from ..pixels import PackedViews
-from ..priors import read_priors
+from ..priors import priors_path, read_priors
 from ..scene import Scene
 from .config import TrainConfig
 
@@ -94,7 +94,7 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
 
     Args:
         scene: the training split (views may differ in size).
-        cfg: the run's configuration (semantics, sampler normalisation, colour correction, albedo supervision).
+        cfg: the run's configuration (labels, semantics, sampler normalisation, colour correction, albedo supervision).
         log: one-line progress messages.
         priors_root: where the prior stages wrote their outputs (default: next to the scene).
         cache_dir: keep the colour buffer in a memory-mapped file ``cache_dir/images.npy`` (created; a capture
@@ -105,10 +105,25 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
 
     V = len(scene)
     hs, ws = scene.cameras.height, scene.cameras.width
-    pri = read_priors(scene, priors_root, labels="auto" if cfg.semantics else None, weights=cfg.semantics,
-                      colour=cfg.colour_correction != "off")
+    source = {"ground-truth": "scene", "none": None}.get(cfg.labels, "segment")
+    if source == "segment":  # predictions when the segmentation prior was run, else no labels
+        seg = priors_path(scene, "segment", priors_root)
+        if not all((seg / f"{f.key}.png").is_file() for f in scene.frames):
+            source = "none"
+    # labels feed L_semantic and W's edge term E (cfg.semantics: the semantic input) and L_mat's class terms
+    # (cfg.mat_labels); read them when either uses them
+    use_mat = cfg.mat_labels and cfg.losses.mat > 0 and cfg.shading == "pbr"
+    pri = read_priors(scene, priors_root, labels=source if (cfg.semantics or use_mat) else None, weights=cfg.semantics,
+                      colour=cfg.colour_correction != "off",
+                      metal={"ground-truth": "scene", "predicted": "segment"}.get(cfg.labels, "none"))
     labels, metal = pri.labels, pri.metal
-    priors: dict = {"labels": pri.labels_source, "metal": "provided" if metal is not None else "none"}
+    priors: dict = {"labels": pri.labels_source, "metal": pri.metal_source}
+    if labels is not None:
+        priors["labels_used_by"] = ", ".join(u for u, on in (("L_semantic", cfg.semantics), ("W (E)", cfg.semantics),
+                                                             ("L_mat", use_mat)) if on)
+    if cfg.labels == "ground-truth":
+        priors["ground_truth_inputs"] = "labels and metal masks (--labels ground-truth)"
+    w_labels = labels if cfg.semantics else None  # without the semantic input W has no label edges
     if with_images:
         path = None if cache_dir is None else Path(cache_dir) / "images.npy"
         images = (PackedViews.allocate(hs, ws, 3, quantised=True, path=path) if scene.srgb
@@ -132,7 +147,7 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         if with_images:
             images.write(i, img.permute(1, 2, 0))
         if computed:
-            lab = None if labels is None else labels.raw(i).long()[None]
+            lab = None if w_labels is None else w_labels.raw(i).long()[None]
             met = None if metal is None else metal.raw(i)[None]
             wm_i = weight_map(img[None], lab, met, wcfg)
             wm.write(i, wm_i.weights[0])
@@ -150,7 +165,7 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
             w = quantile_normalise(w[None])[0]
         wm.write(i, w)
     if computed:
-        priors["weights"] = "computed (G" + ("+E" if labels is not None else "") + ("+M" if metal is not None else "") + ")"
+        priors["weights"] = "computed (G" + ("+E" if w_labels is not None else "") + ("+M" if metal is not None else "") + ")"
     else:
         priors["weights"] = pri.weights_source
     if pri.light is not None:

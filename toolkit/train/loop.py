@@ -11,12 +11,13 @@ from pathlib import Path
 
 import torch
 
-from .._checks import ConfigError, DarsError
+from .._checks import ConfigError
 from ..io import save_torch, write_json
 from ..sampling import OccupancyGrid
 from ..scene import load_scene
 from .config import TrainConfig, resolve_config
 from .data import prepare_data
+from .folder import first_checkpoint_due, open_run_dir, read_checkpoint, read_run_config
 from .step import (TrainingDiverged, TrainState, calibrate_steps, init_state, light_step, lr_progress, progress,
                    train_step)
 
@@ -57,7 +58,7 @@ def save_checkpoint(state: TrainState, path: Path) -> None:
 
 def load_checkpoint(path: Path, state: TrainState) -> TrainState:
     """Restore ``state`` (built by :func:`init_state` with the same config) from ``path``."""
-    ck = torch.load(path, map_location=state.device, weights_only=False)
+    ck = read_checkpoint(path, map_location=state.device)
     state.field.load_state_dict(ck["field"])
     state.background.load_state_dict(ck["background"])
     with torch.no_grad():
@@ -111,16 +112,17 @@ def _plot_curves(log_path: Path, out: Path) -> None:
 
 def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume: bool = False, split: str = "train",
           progress_bar: bool = True, log=None, stop_at: int | None = None,
-          priors_root: str | Path | None = None, downscale: int = 1) -> Path:
+          priors_root: str | Path | None = None, force: bool = False, downscale: int = 1) -> Path:
     """Train on ``scene_path`` into the run directory ``out_dir``; returns the checkpoint path.
 
     With ``resume`` the run continues from ``out_dir/checkpoint.pt`` with the saved config (``cfg`` may only
     raise ``steps``/``minutes``). Without it, an existing run directory with a checkpoint is refused (nothing
     is overwritten). ``stop_at`` ends this call after that step (checkpointed) without changing the run's
     schedule, so a later ``resume`` continues exactly (time-sliced jobs). ``priors_root``: where the prior
-    stages wrote their outputs (default: next to the scene); recorded in the run. ``downscale``: shrink the photos
-    (and intrinsics) by this integer factor on load; recorded in the run (``config.json`` key ``downscale``) so
-    rendering, evaluation and ``resume`` use the same image size.
+    stages wrote their outputs (default: next to the scene); recorded in the run. ``force``: start again in a folder
+    holding a run (its run files are replaced), or write beside other files (never over them; :mod:`toolkit.outputs`).
+    ``downscale``: shrink the photos (and intrinsics) by this integer factor on load; recorded in the run
+    (``config.json`` key ``downscale``) so rendering, evaluation and ``resume`` use the same image size.
     """
     from tqdm import tqdm
 
@@ -128,11 +130,9 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
     out = Path(out_dir)
     ck_path = out / "checkpoint.pt"
     cfg_path = out / "config.json"
+    folder, saved = open_run_dir(out, resume, force, scene_path if resume else None, priors_root)
     if resume:
-        if not ck_path.is_file():
-            raise DarsError(f"--resume: no checkpoint at {ck_path}")
-        saved = json.loads(cfg_path.read_text())
-        base = TrainConfig.from_dict(saved["config"])
+        base = read_run_config(saved, cfg_path)
         steps = base.steps
         if cfg.steps:
             steps = max(cfg.steps, base.steps)
@@ -150,20 +150,18 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
         downscale = saved_downscale
     else:
         saved_calibration = None
-    if not resume and ck_path.exists():
-        raise DarsError(f"{out} already holds a run (checkpoint.pt); pass --resume to continue it or choose another --out")
     if not cfg.steps and not cfg.minutes:
         raise ConfigError("give a training length: --steps N or --minutes M")
     if cfg.device != "auto" and cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"device={cfg.device} requested but CUDA is not available")
     scene = load_scene(scene_path, split, downscale=downscale)
     cfg, scene = resolve_config(cfg, scene, log)
-    out.mkdir(parents=True, exist_ok=True)
     data = prepare_data(scene, cfg, log, priors_root)
     state = init_state(cfg, data)
     if resume:
         load_checkpoint(ck_path, state)
         log(f"[dars] resumed {out} at step {state.step} ({state.elapsed / 60:.1f} min)")
+    folder.begin()  # creates the folder only now, when the run is about to be written
 
     def write_run_config(calibration):
         write_json(cfg_path, {"config": cfg.to_dict(), "scene": str(Path(scene_path).resolve()), "split": split,
@@ -226,7 +224,8 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                 if m not in state.snapshots_done and state.elapsed >= 60.0 * m:
                     save_checkpoint(state, out / "snapshots" / f"checkpoint_{m:g}min.pt")
                     state.snapshots_done.append(m)
-            if state.step % cfg.checkpoint_every == 0 or time.monotonic() - t_last_ck > 300:
+            if (state.step % cfg.checkpoint_every == 0 or time.monotonic() - t_last_ck > 300
+                    or first_checkpoint_due(state, ck_path)):
                 save_checkpoint(state, ck_path)
                 t_last_ck = time.monotonic()
             bar.update(1)
@@ -235,11 +234,13 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                                     f"{last.get('stage', '')}".strip())
     except TrainingDiverged as e:
         bar.close()
+        folder.finish()
         log(f"[dars] {e}")
         raise
     except KeyboardInterrupt:
         bar.close()
         save_checkpoint(state, ck_path)
+        folder.finish()
         log(f"[dars] interrupted at step {state.step}; checkpoint saved, continue with --resume")
         raise
     bar.close()
@@ -251,5 +252,6 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
         _plot_curves(log_path, out / "loss_curves.png")
     except Exception as e:  # noqa: BLE001 - a plot must never lose a finished run
         log(f"[dars] could not plot loss curves: {e}")
+    folder.finish()
     log(f"[dars] trained {state.step} steps in {state.elapsed / 60:.1f} min -> {ck_path}")
     return ck_path

@@ -9,7 +9,6 @@ Example:
 
 from __future__ import annotations
 
-import json
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -27,6 +26,7 @@ from ..sampling import OccupancyGrid
 from ..scene import Scene, load_scene
 from .config import TrainConfig
 from .data import prepare_data
+from .folder import find_run, read_checkpoint, read_run_config
 
 __all__ = ["Run", "load_run", "render_views", "FieldCallables", "field_callables", "load_field_callables"]
 
@@ -108,24 +108,29 @@ class Run:
 
 def load_run(run_dir: str | Path, checkpoint: str | Path | None = None, device: str = "cpu",
              with_weights: bool = True) -> Run:
-    """Load a run directory written by :func:`train` (``checkpoint`` picks a snapshot)."""
+    """Load a run directory written by :func:`train` (``checkpoint`` picks a snapshot).
+
+    Raises:
+        DarsError: not a run, a corrupt ``config.json`` or checkpoint, or the run's scene is gone (naming the file).
+    """
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.json"
-    ck_path = Path(checkpoint) if checkpoint else run_dir / "checkpoint.pt"
-    if not cfg_path.is_file() or not ck_path.is_file():
-        raise DarsError(f"{run_dir} is not a training run (needs config.json and checkpoint.pt); "
-                        "create one with `dars train SCENE --out RUN`")
-    meta = json.loads(cfg_path.read_text())
-    cfg = TrainConfig.from_dict(meta["config"])
-    ck = torch.load(ck_path, map_location=device, weights_only=False)
+    meta, ck_path = find_run(run_dir, checkpoint)
+    cfg = read_run_config(meta, cfg_path)
+    ck = read_checkpoint(ck_path, map_location=device, run_dir=run_dir)
     scene = load_scene(meta["scene"], meta.get("split", "train"), downscale=int(meta.get("downscale", 1)))
     if cfg.scene_box is not None:  # the box the run was trained with (fitted to the data when the file has none)
         scene = replace(scene, aabb=torch.tensor(cfg.scene_box, dtype=torch.float32))
     fld = DarsField(cfg.field, scene.aabb).to(device)
-    fld.load_state_dict(ck["field"])
-    fld.eval()
     bg = Background(ck.get("background_mode", "env"))
-    bg.load_state_dict(ck["background"])
+    try:
+        fld.load_state_dict(ck["field"])
+        bg.load_state_dict(ck["background"])
+        occupancy = OccupancyGrid.from_state_dict(ck["occupancy"]).to(device)
+    except (RuntimeError, KeyError, TypeError, ValueError) as e:
+        raise DarsError(f"checkpoint {ck_path} does not fit the run's config.json ({str(e).splitlines()[0][:200]}); "
+                        "was it copied from another run? Use the checkpoint.pt written with this config.json") from e
+    fld.eval()
     wm = None
     if with_weights and cfg.render_sampler.dars:
         data_cfg = replace(cfg, albedo_supervision=False)
@@ -133,7 +138,7 @@ def load_run(run_dir: str | Path, checkpoint: str | Path | None = None, device: 
                           with_images=False).weights
     return Run(path=run_dir, cfg=cfg, scene_path=meta["scene"], split=meta.get("split", "train"), field=fld,
                background=bg.to(device), l_env=ck["l_env"].to(device),
-               occupancy=OccupancyGrid.from_state_dict(ck["occupancy"]).to(device), train_scene=scene,
+               occupancy=occupancy, train_scene=scene,
                weight_maps=wm, step=int(ck["step"]), elapsed=float(ck["elapsed"]), meta=meta)
 
 

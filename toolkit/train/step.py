@@ -124,6 +124,7 @@ def init_state(cfg: TrainConfig, data: TrainData) -> TrainState:
     extent = float((scene.aabb[1] - scene.aabb[0]).norm())
     occ = OccupancyGrid(scene.aabb, cfg.occupancy_resolution, step=extent / 1024.0, contraction=cfg.field.contraction,
                         far_radius=cfg.field.far_radius).to(dev)
+    occ.explore = cfg.occupancy_explore
     ray_sampler = build_ray_sampler(data.weights if cfg.sampler.dars else None, data.weights, cfg.sampler.rho)
     nb = neighbour_views(scene.cameras, cfg.sampler.n_neighbours)
     dars = DarsContext(scene.cameras.to(dev), data.weights.to(dev), nb.to(dev))
@@ -269,7 +270,8 @@ def train_step(state: TrainState, data: TrainData) -> dict:
         tp = batch.target[batch.n_random:].reshape(P, s, s, 3).permute(0, 3, 1, 2)
         terms["ssim"] = ssim_loss(pp, tp, batch.patch_iw)
     if cfg.shading == "pbr" and lw.mat > 0:
-        terms["mat"] = material_loss(out.albedo, out.roughness, out.metallic, batch.labels, batch.metal,
+        terms["mat"] = material_loss(out.albedo, out.roughness, out.metallic,
+                                     batch.labels if cfg.mat_labels else None, batch.metal,
                                      batch.albedo_gt, batch.iw)
     if stage_b:
         terms["psnr_loss"] = psnr_loss(pred, batch.target, batch.iw)
@@ -295,6 +297,8 @@ def train_step(state: TrainState, data: TrainData) -> dict:
     if out.light_residual is not None and lw.light_reg > 0 and out.weights.numel():
         lw_w = out.opacity if out.deferred else out.weights
         terms["light_reg"] = light_residual_loss(out.light_residual, state.l_env, lw_w)
+    if lw.opacity > 0:
+        terms["opacity"] = ((1.0 - out.opacity) * batch.iw).sum() / batch.iw.sum().clamp_min(1e-12)
     if lw.compactness > 0 and out.sample_s is not None:
         terms["compactness"] = compactness_loss(out.weights, out.sample_s[0], out.sample_s[1],
                                                 out.sample_ray_indices, len(batch.rays))
@@ -302,7 +306,7 @@ def train_step(state: TrainState, data: TrainData) -> dict:
         terms["colour_reg"] = state.colour.regulariser()
     weight = {"rgb": lw.rgb, "ssim": lw.ssim, "mat": lw.mat, "psnr_loss": lw.psnr, "eikonal": lw.eikonal,
               "orientation": lw.orientation, "semantic": lw.semantic, "light_reg": lw.light_reg, "colour_reg": lw.colour_reg,
-              "compactness": lw.compactness}
+              "compactness": lw.compactness, "opacity": lw.opacity}
     loss = sum(weight[k] * v for k, v in terms.items())
     if not torch.isfinite(loss):
         bad = [k for k, v in terms.items() if not torch.isfinite(v)]
