@@ -443,10 +443,10 @@ def _psnr_pair(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _parity_scene(run, cfg: FieldExportConfig):
-    from toolkit.scene import list_splits, load_scene
+    from toolkit.scene import list_splits
 
     split = cfg.parity_split if cfg.parity_split in list_splits(run.scene_path) else run.split
-    sc = load_scene(run.scene_path, split)
+    sc = run.load_split(split)
     if not 0 <= cfg.parity_index < len(sc):
         raise ConfigError(f"parity view {split}:{cfg.parity_index} is out of range ({len(sc)} frames)")
     return sc, split

@@ -58,10 +58,13 @@ def add_ground_truth(root, patch: bool = False):
 
 
 def small_config(**kw):
-    """A ``fast`` config small enough for tests (512-ray batches, a coarse occupancy grid)."""
+    """A ``fast`` config small enough for tests (512-ray batches, a coarse occupancy grid).
+
+    These scenes carry ground-truth labels and no segmenter output, so the tests that score the semantic head ask for
+    the labels explicitly (``labels="ground-truth"``; training's default is ``predicted``)."""
     from toolkit.train import make_config
 
     base = dict(batch_rays=512, ssim_patches=1, log_every=2, checkpoint_every=50, occupancy_resolution=24,
-                occupancy_warmup=8, occupancy_every=4)
+                occupancy_warmup=8, occupancy_every=4, labels="ground-truth")
     base.update(kw)
     return make_config("fast", **base)

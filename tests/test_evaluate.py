@@ -122,8 +122,8 @@ def test_plain_scene_nulls_have_reasons(run_dir, monkeypatch):
 def test_training_info_and_variants(full_eval):
     t = full_eval.training
     assert t["steps"] == 12 and t["preset"] == "fast" and t["variant"] == "full"
-    assert t["switches"] == {"dars": True, "semantics": True, "fixed_light": False, "mat_loss": True, "baseline": None,
-                             "shading": "pbr"}
+    assert t["switches"] == {"dars": True, "semantics": True, "mat_labels": True, "fixed_light": False,
+                             "mat_loss": True, "baseline": None, "shading": "pbr"}
     assert t["priors"]["labels"] == "provided" and t["albedo_supervision"] is False
     assert variant_of(make_config("fast", baseline="nerf")) == "nerf"
     assert variant_of(make_config("fast", dars=False)) == "no_dars"

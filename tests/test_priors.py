@@ -61,8 +61,10 @@ def test_read_priors_reads_every_stage(bare, tmp_path):
     (root / "light").mkdir()
     (root / "light" / "light.json").write_text(json.dumps({"coeffs": np.arange(27).reshape(9, 3).tolist()}))
     p = read_priors(bare, root)
-    assert p.labels.dtype == torch.uint8 and p.labels_source == f"predicted ({root / 'segment'})"
-    assert p.weights.shape == (3, 16, 16) and float(p.weights[2].max()) == 0.5
+    assert p.labels.data.dtype == torch.uint8 and p.labels_source == f"predicted ({root / 'segment'})"
+    assert p.labels.data.shape == (3 * 16 * 16,) and int(p.labels[1].max()) == 2
+    assert p.weights.data.dtype == torch.float16 and len(p.weights) == 3 and p.weights[2].shape == (16, 16)
+    assert float(p.weights[2].max()) == 0.5
     assert p.distortion.tolist() == [0.0, 0.5, 0.0] and p.weights_source == f"loaded ({root / 'weights'})"
     assert p.light.shape == (9, 3) and float(p.light[8, 2]) == 26.0
     assert read_priors(bare, root, weights=False).weights is None
@@ -85,3 +87,39 @@ def test_output_dir_keeps_user_files(bare, tmp_path):
     assert man["files"] == ["ours.txt"] and man["dars"] == "priors weights"
     assert (out / "mine.txt").read_text() == "user"
     assert isinstance(prepare_out_dir(bare, "weights", out, ["ours.txt"]), OutputDir)  # ours: may be rewritten
+
+
+def test_read_priors_resizes_maps_made_at_another_downscale(tmp_path):
+    """Priors computed on the full-size photos serve a run trained with --downscale 2 (resized to the frames'
+    size: nearest for labels, area for W); a map that is not a scaled copy of its frame is refused."""
+    scene_dir = write_scene(tmp_path / "s", n_train=2, n_test=1, size=16, with_labels=False)
+    root = tmp_path / "priors"
+    full = load_scene(scene_dir, "train")
+    _predict(full, root / "segment", value=3)
+    (root / "weights").mkdir(parents=True)
+    for f in full.frames:
+        w = np.zeros((16, 16), np.float16)
+        w[:, 8:] = 1.0
+        np.save(root / "weights" / f"{f.key}.npy", w)
+    half = load_scene(scene_dir, "train", downscale=2)
+    p = read_priors(half, root)
+    assert p.labels[0].shape == (8, 8) and int(p.labels[0].min()) == 3
+    w0 = p.weights[0]
+    assert w0.shape == (8, 8) and float(w0[:, :4].max()) == 0.0 and float(w0[:, 4:].min()) == 1.0
+    assert "2 resized" in p.weights_source
+    np.save(root / "weights" / f"{full.frames[1].key}.npy", np.zeros((16, 5), np.float16))
+    with pytest.raises(DarsError, match="not a scaled copy"):
+        read_priors(half, root)
+
+
+def test_cli_weights_at_a_downscale_serve_a_full_size_run(tmp_path, capsys):
+    """`dars priors weights --downscale 2` writes half-size maps; the full-size trainer reads them enlarged."""
+    from toolkit.cli import main
+
+    scene_dir = write_scene(tmp_path / "s", n_train=2, n_test=1, size=16, with_labels=False)
+    assert main(["priors", "weights", str(scene_dir), "--downscale", "2", "--json"]) == 0
+    capsys.readouterr()
+    full = load_scene(scene_dir, "train")
+    assert np.load(priors_path(full, "weights") / f"{full.frames[0].key}.npy").shape == (8, 8)
+    p = read_priors(full)
+    assert p.weights[0].shape == (16, 16) and "2 resized" in p.weights_source

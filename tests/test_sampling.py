@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -8,6 +10,7 @@ from toolkit.sampling import (OccupancyGrid, SamplerConfig, average_other_view_w
                               merge_samples, neighbour_views, ray_budgets, sample_fine, select_rays,
                               stratified_edges)
 from toolkit.pinhole import look_at
+from toolkit.pixels import PackedViews
 from toolkit.scene import Cameras, generate_rays
 
 
@@ -25,6 +28,55 @@ def test_ray_selection_follows_w_chi_square():
     f = torch.arange(40, dtype=torch.float64) ** 1.5
     est = float((iw.double() * f[idx]).mean())
     assert abs(est - float(f.mean())) / float(f.mean()) < 0.01
+
+
+def test_ray_selection_over_views_of_different_sizes_chi_square():
+    """Views of three sizes, W packed at uint8 precision: a view by its total weight, then a pixel by rejection
+    sampling gives exactly p ∝ (1 - rho) + rho W over all pixels, and the importance weights stay unbiased."""
+    g = torch.Generator().manual_seed(3)
+    maps = [torch.rand(3, 4, generator=g), torch.rand(5, 2, generator=g) ** 3, torch.zeros(2, 3)]
+    W = PackedViews.from_maps(maps, quantise=True)
+    rs = build_ray_sampler(W, W, rho=0.8)
+    w = torch.cat([W[i].reshape(-1) for i in range(3)]).double()  # the quantised values the sampler reads
+    expected = (1 - 0.8) + 0.8 * w
+    expected = expected / expected.sum()
+    idx, iw = select_rays(rs, 300000, g)
+    counts = torch.bincount(idx, minlength=W.n_pixels).numpy()
+    chi2, p = stats.chisquare(counts, expected.numpy() * counts.sum())
+    assert p > 1e-3, f"pixel counts do not follow (1-rho) + rho W (chi2={chi2:.1f}, p={p:.2g})"
+    f = torch.arange(W.n_pixels, dtype=torch.float64) ** 1.5
+    est = float((iw.double() * f[idx]).mean())
+    assert abs(est - float(f.mean())) / float(f.mean()) < 0.01
+    views, rows, cols = W.locate(idx[:50])
+    assert torch.equal(W.flat_index(views, rows, cols), idx[:50])
+    assert bool((rows < W.heights[views]).all() and (cols < W.widths[views]).all())
+
+
+def test_ray_selection_falls_back_to_the_exact_cdf_for_peaky_views():
+    """rho = 1 and one hot pixel per view: rejection almost never accepts; the leftovers are drawn exactly."""
+    W = torch.zeros(2, 30, 30)
+    W[0, 3, 4] = 1.0
+    W[1, 20, 7] = 0.5
+    rs = build_ray_sampler(W, (2, 30, 30), rho=1.0)
+    idx, iw = select_rays(rs, 3000, torch.Generator().manual_seed(0), max_rounds=2)
+    assert set(idx.tolist()) == {3 * 30 + 4, 900 + 20 * 30 + 7}
+    frac = float((idx == 3 * 30 + 4).double().mean())
+    assert abs(frac - 2 / 3) < 0.03
+    with pytest.raises(ConfigError, match="no valid training pixels"):
+        build_ray_sampler(torch.zeros(1, 2, 2), (1, 2, 2), rho=1.0)
+
+
+def test_ray_selection_respects_a_valid_mask():
+    g = torch.Generator().manual_seed(4)
+    W = torch.rand(2, 6, 6, generator=g)
+    valid = torch.rand(2, 6, 6, generator=g) > 0.7
+    rs = build_ray_sampler(W, (2, 6, 6), rho=0.5, valid=valid)
+    idx, iw = select_rays(rs, 20000, g)
+    assert bool(valid.reshape(-1)[idx].all())
+    expected = ((1 - 0.5) + 0.5 * W.reshape(-1).double()) * valid.reshape(-1)
+    counts = torch.bincount(idx, minlength=72).numpy()[valid.reshape(-1).numpy()]
+    e = (expected / expected.sum()).numpy()[valid.reshape(-1).numpy()]
+    assert stats.chisquare(counts, e * counts.sum())[1] > 1e-3
 
 
 def test_uniform_selection_when_rho_zero():
@@ -117,6 +169,26 @@ def test_other_view_weights_peak_where_the_point_projects_on_high_w():
     pts = torch.tensor([[0.0, 0, 0], [0.0, 0, 0.9]])
     w = average_other_view_weights(pts, torch.tensor([0, 0]), nb, cams, W)
     assert float(w[0]) == pytest.approx(1.0) and float(w[1]) == 0.0
+
+
+def test_other_view_weights_with_views_of_different_sizes():
+    """W̄ reads each neighbour's map at that view's own size (a flat buffer with per-view offsets)."""
+    cams = _ring_cameras()
+    sizes = [(20, 20), (12, 30), (20, 20), (30, 12), (20, 20), (16, 16)]
+    cams = replace(cams, width=torch.tensor([w for _, w in sizes]), height=torch.tensor([h for h, _ in sizes]),
+                   cx=torch.tensor([w / 2 for _, w in sizes], dtype=torch.float32),
+                   cy=torch.tensor([h / 2 for h, _ in sizes], dtype=torch.float32))
+    maps = []
+    for h, w in sizes:
+        m = torch.zeros(h, w)
+        m[h // 2, w // 2] = 1.0  # the origin projects onto each view's centre pixel
+        maps.append(m)
+    W = PackedViews.from_maps(maps, quantise=True)
+    nb = neighbour_views(cams, 3)
+    pts = torch.tensor([[0.0, 0, 0], [0.0, 0, 0.9]])
+    for v in range(6):
+        w = average_other_view_weights(pts, torch.tensor([v, v]), nb, cams, W)
+        assert float(w[0]) == pytest.approx(1.0) and float(w[1]) == 0.0
 
 
 def test_occupancy_grid_marks_empty_space():

@@ -1,4 +1,5 @@
 import json
+import math
 
 import pytest
 import torch
@@ -177,19 +178,26 @@ def test_normal_losses_point_normals_out_of_the_surface():
 
 
 # ------------------------------------------------------------------------------------------------ room prior
-def test_scene_type_auto_room_for_the_gallery_object_for_lego(sample_scene_path):
-    """Cameras inside the box, opaque photos → room, with the layer on every face no camera comes near (the sample's
-    cameras reach the box top, so that face has none); cameras outside (the tiny synthetic scene) → object."""
+def test_scene_type_auto_unbounded_for_the_gallery_object_for_lego(sample_scene_path):
+    """Photos with no transparent pixel (the sample's RGBA PNGs are opaque everywhere; the tiny Lego's RGB on white)
+    → unbounded: contracted field; photos with real transparency (NeRF Lego's RGBA) → object, bounded. No room layer
+    in either (retired)."""
     from conftest import shared
-    from toolkit.train import ROOM_SHELL, resolve_config
+    from toolkit.train import resolve_config
+    from toolkit.train.config import photos_have_transparency
 
-    cfg = resolve_config(make_config("fast", steps=1), load_scene(sample_scene_path, "train"))
-    assert cfg.scene_type == "room" and cfg.field.shell == ROOM_SHELL
-    assert cfg.field.shell_faces == (True, True, True, True, True, False)
-    lego = resolve_config(make_config("fast", steps=1), load_scene(shared("tiny_lego", "tiny_lego_100.npz"), "train"))
-    assert lego.scene_type == "object" and lego.field.shell == 0.0
-    forced = resolve_config(make_config("fast", steps=1, scene_type="object"), load_scene(sample_scene_path, "train"))
-    assert forced.field.shell == 0.0
+    assert photos_have_transparency(load_scene(shared("nerf_synthetic", "lego"), "train"))
+    assert not photos_have_transparency(load_scene(sample_scene_path, "train"))
+
+    cfg, scene = resolve_config(make_config("fast", steps=1), load_scene(sample_scene_path, "train"))
+    assert cfg.scene_type == "unbounded" and cfg.field.contraction and cfg.field.shell == 0.0
+    assert scene.aabb is not None and cfg.scene_box_source
+    tiny, _ = resolve_config(make_config("fast", steps=1), load_scene(shared("tiny_lego", "tiny_lego_100.npz"), "train"))
+    assert tiny.scene_type == "unbounded" and tiny.field.contraction
+    forced, _ = resolve_config(make_config("fast", steps=1, scene_type="object"), load_scene(sample_scene_path, "train"))
+    assert forced.scene_type == "object" and not forced.field.contraction
+    room, _ = resolve_config(make_config("fast", steps=1, scene_type="room"), load_scene(sample_scene_path, "train"))
+    assert room.scene_type == "unbounded" and room.field.contraction and room.field.shell == 0.0
     with pytest.raises(ConfigError, match="scene_type"):
         make_config("fast", steps=1, scene_type="hall")
 
@@ -217,25 +225,72 @@ def test_room_layer_density_on_enabled_faces_only():
         FieldConfig(shell=0.7)
 
 
-def test_room_layer_fades_in_after_stage_a_and_the_background_restarts_dark(tmp_path):
-    """A room run: the layer is off in stage (a), fades in over SHELL_FADE of the run, and when it comes on the
-    learned environment (which stood in for the walls) is reset dark."""
-    from synthetic import make_scene as make
-    from toolkit.train import SHELL_FADE, init_state, prepare_data, resolve_config, train_step
+# ------------------------------------------------------------------------------------------------ photos in, memory
+def _mixed_sizes(src, dst):
+    """A copy of the tiny scene whose training photos come in three sizes: every third cropped to portrait 24x32,
+    the next to landscape 32x20 (per-frame w, h, fl_x, cx, cy), the rest 32x32; labels and metal masks cropped too."""
+    import shutil
 
-    scene = load_scene(make(tmp_path / "s", n_train=6, n_test=1, size=16), "train")
-    cfg = resolve_config(_small(steps=20, pretrain_fraction=0.5, scene_type="room"), scene)
-    assert cfg.field.shell > 0
-    data = prepare_data(scene, cfg, log=lambda m: None)
-    st = init_state(cfg, data)
-    with torch.no_grad():
-        st.background.raw.fill_(1.0)                               # an environment that stands in for bright walls
-    seen = []
-    for _ in range(20):
-        train_step(st, data)
-        seen.append((st.step, float(st.field.shell_weight), float(st.background.env_map().detach().mean())))
-        st.step += 1
-    assert all(w == 0.0 for s, w, _ in seen if s <= 10)          # progress ≤ pretrain_fraction: stage (a)
-    ramp = [w for s, w, _ in seen if s > 10]
-    assert ramp[0] == pytest.approx(0.05 / SHELL_FADE) and ramp == sorted(ramp) and ramp[-1] == 1.0
-    assert seen[11][2] < 0.1 * seen[10][2], "the environment restarts dark when the layer comes on"
+    import cv2
+
+    shutil.copytree(src, dst)
+    meta = json.loads((dst / "transforms_train.json").read_text())
+    focal = 0.5 * 32 / math.tan(0.5 * meta["camera_angle_x"])
+    for k, fm in enumerate(meta["frames"]):
+        r0, r1, c0, c1 = {0: (0, 32, 4, 28), 1: (6, 26, 0, 32)}.get(k % 3, (0, 32, 0, 32))
+        for key in ("file_path", "semantic_path", "metal_path"):
+            p = str(dst / fm[key])
+            cv2.imwrite(p, cv2.imread(p, cv2.IMREAD_UNCHANGED)[r0:r1, c0:c1])
+        fm.update(w=c1 - c0, h=r1 - r0, fl_x=focal, fl_y=focal, cx=16.0 - c0, cy=16.0 - r0)
+    (dst / "transforms_train.json").write_text(json.dumps(meta))
+    return dst
+
+
+def test_training_on_photos_of_different_sizes(tiny, tmp_path):
+    """Portrait, landscape and square photos end to end: the prior stages (builtin segmenter trained on the photos
+    of one size, light network, W maps) and a run with packed pixels, labels, metal and W maps of each view's own
+    size; the DARS sampler and renderer read each view at its size."""
+    from toolkit.priors import priors_light, priors_segment, priors_weights
+    from toolkit.segment import TrainSegmenterConfig
+
+    scene = _mixed_sizes(tiny, tmp_path / "mixed")
+    sc = load_scene(scene, "train")
+    assert {(int(h), int(w)) for h, w in zip(sc.cameras.height, sc.cameras.width)} == {(32, 24), (20, 32), (32, 32)}
+    info = priors_segment(sc, None, "builtin", train_every=2, train_cfg=TrainSegmenterConfig(steps=3, crop=16))
+    assert len(info["train_views"]) == 7 and 0.0 <= info["miou_heldout"] <= 1.0  # the 32x24 ones of every 2nd
+    assert len(priors_light(sc, None)["per_image"]) == len(sc)
+    priors_weights(sc, None)
+    train(scene, tmp_path / "r", _small(steps=30, labels="ground-truth"), progress_bar=False, log=lambda m: None)
+    run = load_run(tmp_path / "r")
+    assert run.weight_maps[0].shape == (32, 24) and run.weight_maps[1].shape == (20, 32)
+    assert run.weight_maps[2].shape == (32, 32)
+    assert run.weight_maps.data.dtype == torch.float16
+    out = run.render(run.train_scene.cameras, 1)
+    assert out.rgb.shape[:2] == (20, 32) and bool(torch.isfinite(out.rgb).all())
+    priors = json.loads((tmp_path / "r" / "config.json").read_text())["priors"]
+    assert priors["labels"] == "provided" and priors["metal"] == "provided"
+    assert priors["weights"].startswith("loaded") and priors["light"].startswith("light network")
+
+
+def test_downscale_is_recorded_and_used_by_render_and_resume(tiny, tmp_path, capsys):
+    from toolkit.cli import main
+
+    run_dir = tmp_path / "d"
+    train(tiny, run_dir, _small(steps=4), progress_bar=False, log=lambda m: None, downscale=2)
+    assert json.loads((run_dir / "config.json").read_text())["downscale"] == 2
+    run = load_run(run_dir)
+    assert run.downscale == 2 and run.train_scene.image_size == (16, 16) and run.weight_maps[0].shape == (16, 16)
+    assert run.load_split("test").image_size == (16, 16)
+    with pytest.raises(DarsError, match="--downscale 2, not 4"):
+        train(tiny, run_dir, _small(steps=8), resume=True, progress_bar=False, log=lambda m: None, downscale=4)
+    train(tiny, run_dir, _small(steps=6), resume=True, progress_bar=False, log=lambda m: None)
+    assert load_run(run_dir).step == 6 and json.loads((run_dir / "config.json").read_text())["downscale"] == 2
+    # a run folder written before --downscale existed (no key) loads at full size
+    meta = json.loads((run_dir / "config.json").read_text())
+    del meta["downscale"]
+    (run_dir / "config.json").write_text(json.dumps(meta))
+    assert load_run(run_dir).train_scene.image_size == (32, 32)
+    with pytest.raises(SystemExit) as e:
+        main(["train", str(tiny), "--out", str(tmp_path / "z"), "--steps", "2", "--downscale", "0"])
+    assert e.value.code == 2
+    assert "--downscale: expected a positive integer, got '0'" in capsys.readouterr().err

@@ -28,7 +28,7 @@ key                    definition (computed when ...)
                        normal ≠ 0). Needs GT normals.
 ``miou``               mean IoU over the 7 classes of the rendered semantics (argmax of the rendered logits, 255
                        where the rendered opacity < 0.5) against GT labels, pooled over views. Needs GT labels and a
-                       run trained with semantic guidance and labels.
+                       run trained with semantic input and labels.
 =====================  ===============================================================================================
 
 **The view-consistency patch.** A square of side ``size`` in a surface plane, projected into each view with
@@ -222,11 +222,16 @@ def _clean(obj):
 # ============================================================================ run description
 def variant_of(cfg) -> str:
     """Name of the Table 6 variant a :class:`~toolkit.train.TrainConfig` is (``full``, ``no_dars``, ``nerf``, ...);
-    ``custom`` for combinations that are not one of the six."""
+    ``no_semantics_legacy`` for a run saved before the semantic input and L_mat's class terms were separate switches
+    (its ``semantics=False`` removed both); ``custom`` for other combinations."""
     if cfg.shading == "radiance":
         return "nerf"
     off = [name for name, is_off in (("no_dars", not cfg.sampler.dars), ("no_semantics", not cfg.semantics),
-                                     ("fixed_light", cfg.fixed_light), ("no_mat_loss", cfg.losses.mat <= 0)) if is_off]
+                                     ("fixed_light", cfg.fixed_light), ("no_mat_loss", cfg.losses.mat <= 0),
+                                     ("no_mat_labels", not getattr(cfg, "mat_labels", True) and cfg.losses.mat > 0))
+           if is_off]
+    if off == ["no_semantics", "no_mat_labels"]:
+        return "no_semantics_legacy"
     return "full" if not off else off[0] if len(off) == 1 else "custom"
 
 
@@ -254,6 +259,7 @@ def training_info(run) -> dict:
         "seed": int(cfg.seed),
         "variant": variant_of(cfg),
         "switches": {"dars": bool(cfg.sampler.dars), "semantics": bool(cfg.semantics),
+                     "mat_labels": bool(cfg.mat_labels),
                      "fixed_light": bool(cfg.fixed_light), "mat_loss": bool(cfg.losses.mat > 0),
                      "baseline": "nerf" if cfg.shading == "radiance" else None, "shading": cfg.shading},
         "priors": priors,
@@ -308,7 +314,7 @@ def training_sample_counts(run, index: int, chunk: int | None = None) -> dict[st
     if sampler.dars and run.weight_maps is not None:
         wm = run.weight_maps.to(dev)
         dars = DarsContext(cams, wm, neighbour_views(scene.cameras, sampler.n_neighbours).to(dev))
-        ray_w = wm[index].reshape(-1)
+        ray_w = wm[index].reshape(-1)  # view `index` as float [H, W]
     chunk = chunk or h * w  # one chunk: the budget is shared over the whole image, as over a training batch
     total, fine = [], []
     for s in range(0, len(rays), chunk):
@@ -461,7 +467,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     log = log or (lambda m: print(m, file=sys.stderr))
     if not isinstance(run, Run):
         raise DarsError(f"evaluate_run: expected a loaded run (toolkit.train.load_run(RUN)), got {type(run).__name__}")
-    scene = load_scene(run.scene_path, split)
+    scene = run.load_split(split)
     if len(scene) == 0:
         raise DarsError(f"evaluate_run: split '{split}' of {run.scene_path} has no views")
     dev = _device_of(run)
@@ -500,7 +506,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     if "semantic" not in extras:
         unavailable["miou"] = f"split '{split}' has no ground-truth semantic labels ('semantic_path' on every frame)"
     elif not run.cfg.semantics or labels_src in ("off", "none", ""):
-        unavailable["miou"] = ("the run was trained without semantic supervision (semantic guidance off or no labels), "
+        unavailable["miou"] = ("the run was trained without semantic supervision (semantic input off or no labels), "
                                "so its semantic head is untrained")
 
     # ---- the view-consistency patch (may be chosen after the first render)
@@ -745,15 +751,16 @@ def _weight_figures(run, cfg: EvalConfig, figures: EvalFigures) -> dict:
     tr = run.train_scene
     idx = uniform_view_indices(len(tr), min(cfg.weight_views, len(tr)))
     if run.weight_maps is not None:
-        wmaps = run.weight_maps[idx].float().cpu()
+        wmaps = [run.weight_maps[i].float().cpu() for i in idx]
         w_source = "the run's W maps (used by its DARS sampler)"
     else:
         from .edges import WeightMapConfig, weight_map
 
-        imgs = tr.load_images(idx)
-        labels = torch.stack([tr.load_extra(i, "semantic") for i in idx]) if tr.has_extra("semantic") else None
-        metal = torch.stack([tr.load_extra(i, "metal") for i in idx]) if tr.has_extra("metal") else None
-        wmaps = weight_map(imgs, labels, metal, WeightMapConfig()).weights.float().cpu()
+        wmaps = []
+        for i in idx:  # one view at a time: views may differ in size
+            labels = tr.load_extra(i, "semantic")[None] if tr.has_extra("semantic") else None
+            metal = tr.load_extra(i, "metal")[None] if tr.has_extra("metal") else None
+            wmaps.append(weight_map(tr.load_image(i)[None], labels, metal, WeightMapConfig()).weights[0].float().cpu())
         w_source = "recomputed (the run does not sample by W: DARS off)"
     stats: dict[str, list[float]] = {k: [] for k in ("mean", "min", "max", "fine_mean", "fine_min", "fine_max")}
     for k, i in enumerate(idx):

@@ -23,6 +23,7 @@ from torch import nn
 
 from ._checks import ConfigError, check_choice
 from .field import DarsField, FieldOutputs
+from .pixels import PackedViews
 from .render import accumulate_along_rays, render_weights
 from .sampling import (OccupancyGrid, SamplerConfig, average_other_view_weights, coarse_samples, merge_samples,
                        proposal_weights, ray_budgets, sample_fine, stratified_edges)
@@ -104,7 +105,7 @@ class DarsContext:
     """What DARS needs at render time (part 3): the training cameras, their weight maps and neighbours."""
 
     cameras: Cameras
-    weight_maps: torch.Tensor  # [V, H, W]
+    weight_maps: PackedViews | torch.Tensor  # W of the training views: packed (views of any sizes) or [V, H, W]
     neighbours: torch.Tensor  # [V, k]
     view_of_ray: torch.Tensor | None = None  # [R] training view index of each ray (None: nearest view)
 
@@ -194,7 +195,7 @@ class RenderOutputs:
     strata: contracted arc length, or metres when bounded), for :func:`toolkit.losses.compactness_loss`."""
 
 
-def render_dars_context(train_cameras: Cameras, weight_maps: torch.Tensor, c2w: torch.Tensor, k: int) -> DarsContext:
+def render_dars_context(train_cameras: Cameras, weight_maps: PackedViews | torch.Tensor, c2w: torch.Tensor, k: int) -> DarsContext:
     """DARS context for rendering a camera with pose ``c2w`` [4, 4]: its ``k`` nearest training views."""
     o = train_cameras.origins
     f = -train_cameras.c2w[:, :3, 2]

@@ -34,11 +34,12 @@ from . import outputs
 from ._checks import ConfigError, DarsError
 from .io import atomic_write, linear_to_srgb, read_json, read_map, write_json, write_png
 from .outputs import MANIFEST
+from .pixels import PackedViews
 
 if TYPE_CHECKING:
     from .scene import Scene
 
-__all__ = ["OutputDir", "prepare_out_dir", "priors_path", "labels_for", "priors_weights", "priors_segment",
+__all__ = ["OutputDir", "prepare_out_dir", "priors_path", "labels_for", "label_source", "frame_labels", "priors_weights", "priors_segment",
            "priors_colour", "priors_light", "sh_probe_json", "TrainingPriors", "read_priors", "TAU", "MANIFEST"]
 
 TAU = 0.7
@@ -101,7 +102,8 @@ def labels_for(scene: "Scene", source: LabelSource, segment_dir: str | os.PathLi
             predictions ``<segment_dir>/<key>.png`` when every requested frame has one, else none; ``scene`` or
             ``segment`` — that source (raises when a frame lacks it); ``none`` — no labels.
         segment_dir: folder of ``dars priors segment`` predictions (None: no predictions).
-        frames: frame indices (default: every frame).
+        frames: frame indices (default: every frame); they must share one size (see :func:`frame_labels` for one
+            frame at a time).
 
     Returns:
         (int64 [n, H, W] class ids (255 unlabelled) or None, the source used: ``scene``, ``segment`` or ``none``).
@@ -110,24 +112,63 @@ def labels_for(scene: "Scene", source: LabelSource, segment_dir: str | os.PathLi
         DarsError: ``source`` is ``scene`` or ``segment`` and a frame has no such labels.
     """
     idx = list(range(len(scene))) if frames is None else [int(i) for i in frames]
-    if source == "none":
+    src = label_source(scene, source, segment_dir, idx)
+    if src == "none":
         return None, "none"
+    return torch.stack([frame_labels(scene, i, src, segment_dir) for i in idx]), src
+
+
+def label_source(scene: "Scene", source: LabelSource, segment_dir: str | os.PathLike | None,
+                 frames: Iterable[int] | None = None) -> str:
+    """Where the labels of ``frames`` come from (the rule of :func:`labels_for`, nothing decoded): ``scene``,
+    ``segment`` or ``none``.
+
+    Raises:
+        DarsError: ``source`` is ``scene`` or ``segment`` and a frame has no such labels.
+    """
+    idx = list(range(len(scene))) if frames is None else [int(i) for i in frames]
+    if source == "none":
+        return "none"
     if source in ("auto", "scene") and all("semantic" in scene.frames[i].extras for i in idx):
-        return torch.stack([scene.load_extra(i, "semantic") for i in idx]), "scene"
+        return "scene"
     files = [Path(segment_dir) / f"{scene.frames[i].key}.png" for i in idx] if segment_dir is not None else []
     if source in ("auto", "segment") and files and all(f.is_file() for f in files):
-        labs = []
-        for f in files:
-            lab = read_map(f, f"predicted labels {f}")
-            labs.append(torch.from_numpy(np.asarray(lab[..., 0] if lab.ndim == 3 else lab, np.int64)))
-        return torch.stack(labs), "segment"
+        return "segment"
     if source in ("scene", "segment"):
         missing = [i for i in idx if ("semantic" not in scene.frames[i].extras if source == "scene"
                                       else not (segment_dir is not None
                                                 and (Path(segment_dir) / f"{scene.frames[i].key}.png").is_file()))]
         i = missing[0]
         raise DarsError(f"frame {i} ('{scene.frames[i].name}') has no {source} labels (use --labels auto or none)")
-    return None, "none"
+    return "none"
+
+
+def frame_labels(scene: "Scene", i: int, source: Literal["scene", "segment"],
+                 segment_dir: str | os.PathLike | None) -> torch.Tensor:
+    """int64 [H, W] class ids of frame ``i`` from ``source`` (see :func:`label_source`). Predictions made at another
+    image size (``dars priors segment`` run with another ``--downscale``) are resized to the frame's (nearest)."""
+    if source == "scene":
+        return scene.load_extra(i, "semantic")
+    f = Path(segment_dir) / f"{scene.frames[i].key}.png"
+    lab = read_map(f, f"predicted labels {f}")
+    lab = np.asarray(lab[..., 0] if lab.ndim == 3 else lab)
+    return torch.from_numpy(_fit_to_frame(scene, i, lab.astype(np.uint8), nearest=True).astype(np.int64))
+
+
+def _fit_to_frame(scene: "Scene", i: int, arr: np.ndarray, nearest: bool) -> np.ndarray:
+    """A prior map [h, w] of frame ``i`` resized to the frame's image size (a prior computed at another
+    ``--downscale``): nearest for labels, area (shrinking) or linear (enlarging) for W."""
+    h, w = int(scene.cameras.height[i]), int(scene.cameras.width[i])
+    if arr.shape[:2] == (h, w):
+        return arr
+    import cv2
+
+    ah, aw = arr.shape[:2]
+    if abs(ah / h - aw / w) > 0.02 * max(ah / h, aw / w):
+        raise DarsError(f"prior map of frame {i} ('{scene.frames[i].name}') is {aw}x{ah}, not a scaled copy of the "
+                        f"{w}x{h} image; re-run the prior stage on this scene")
+    interp = cv2.INTER_NEAREST if nearest else (cv2.INTER_AREA if ah > h else cv2.INTER_LINEAR)
+    return cv2.resize(arr, (w, h), interpolation=interp)
 
 
 # ============================================================================ colour (stage 2)
@@ -206,7 +247,9 @@ def priors_segment(scene, out_dir=None, backend: str = "provided", model: str | 
             if train_every < 1:
                 raise SegmentationError(f"--train-every {train_every} must be >= 1")
             train_idx = list(range(0, len(scene), train_every))
-            imgs = scene.load_images(train_idx)
+            hw = [(int(h), int(w)) for h, w in zip(scene.cameras.height, scene.cameras.width)]
+            train_idx = [i for i in train_idx if hw[i] == hw[train_idx[0]]]
+            imgs = scene.load_images(train_idx)  # photos of one size (the first's) train it; it segments any size
             labs = torch.stack([scene.load_extra(i, "semantic") for i in train_idx])
             cfg = train_cfg or TrainSegmenterConfig(progress=True)
             res = train_segmenter(imgs, labs, cfg)
@@ -249,7 +292,7 @@ def priors_segment(scene, out_dir=None, backend: str = "provided", model: str | 
     from .scene import SEMANTIC_CLASSES
 
     def _report(p, g):
-        miou, per = mean_iou(torch.stack(p), torch.stack(g))
+        miou, per = mean_iou(torch.cat([x.reshape(-1) for x in p]), torch.cat([x.reshape(-1) for x in g]))
         return miou, {c: (None if v != v else v) for c, v in zip(SEMANTIC_CLASSES, per)}
 
     if gts:
@@ -296,11 +339,18 @@ def priors_light(scene, out_dir=None, weights: str | None = None, reduce: str = 
     out = prepare_out_dir(scene, "light", out_dir, ["light.json"], force)
     per, base_b = [], []
     for i in _progress(range(0, len(scene), batch_size), "light", (len(scene) + batch_size - 1) // batch_size):
-        imgs = torch.stack([scene.load_image(j) for j in range(i, min(i + batch_size, len(scene)))]).float()
-        if not scene.srgb:
-            imgs = linear_to_srgb(imgs.clamp(0.0, 1.0))
-        per.append(predict_sh(model, imgs, batch_size))
-        base_b.append(mean_colour_sh(imgs))
+        batch = [scene.load_image(j) for j in range(i, min(i + batch_size, len(scene)))]
+        for k0 in range(len(batch)):  # runs of photos of one size (portrait and landscape may alternate)
+            if k0 and batch[k0].shape == batch[k0 - 1].shape:
+                continue
+            k1 = k0 + 1
+            while k1 < len(batch) and batch[k1].shape == batch[k0].shape:
+                k1 += 1
+            imgs = torch.stack(batch[k0:k1]).float()
+            if not scene.srgb:
+                imgs = linear_to_srgb(imgs.clamp(0.0, 1.0))
+            per.append(predict_sh(model, imgs, batch_size))
+            base_b.append(mean_colour_sh(imgs))
     per_image = torch.cat(per)
     coeffs = aggregate_sh(per_image, reduce)
     meta = model.meta
@@ -421,12 +471,15 @@ def _save_npy(path: Path, arr) -> None:
 class TrainingPriors:
     """What the trainer reads from a scene and its priors folder (:func:`read_priors`).
 
+    Per-pixel priors are packed (:class:`toolkit.pixels.PackedViews`: the views one after another, each its own size).
+
     Attributes:
-        labels: uint8 [V, H, W] class ids (255 unlabelled), or None.
+        labels: uint8 [P] class ids (255 unlabelled), or None.
         labels_source: ``provided`` (the scene's), ``predicted (<dir>)``, ``none`` or ``off``.
-        metal: bool [V, H, W] metal masks (the scene's or predicted), or None.
+        metal: bool [P] metal masks (the scene's or predicted), or None.
         metal_source: ``provided``, ``predicted (<dir>)`` or ``none``.
-        weights: float32 [V, H, W] W maps of ``dars priors weights``, or None (not there, or not asked for).
+        weights: float16 [P] W maps of ``dars priors weights`` (as written: float16), or None (not there, or not asked
+            for). Maps written at another image size (another ``--downscale``) are resized to the frames'.
         distortion: float [V] L_distortion of each loaded map (0 where ``weights.json`` lacks it), or None.
         weights_source: ``loaded (<dir>)`` or None.
         light: float32 [9, 3] SH coefficients of ``light.json``, or None.
@@ -435,10 +488,10 @@ class TrainingPriors:
         colour_source: ``loaded (<file>)`` or None.
     """
 
-    labels: torch.Tensor | None
+    labels: PackedViews | None
     labels_source: str
-    metal: torch.Tensor | None
-    weights: torch.Tensor | None = None
+    metal: PackedViews | None
+    weights: PackedViews | None = None
     distortion: torch.Tensor | None = None
     weights_source: str | None = None
     light: torch.Tensor | None = None
@@ -450,10 +503,10 @@ class TrainingPriors:
 
 def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *, labels: LabelSource | None = "auto",
                 weights: bool = True, colour: bool = True, metal: str = "scene") -> TrainingPriors:
-    """Read the priors of ``scene`` for training, file by file (nothing is computed here).
+    """Read the priors of ``scene`` for training, file by file into packed buffers (nothing is computed here).
 
     Args:
-        scene: the training split.
+        scene: the training split (its frames may differ in size).
         priors_root: folder holding ``<stage>/`` outputs (default: ``scene.priors_dir(stage)``).
         labels: label source for :func:`labels_for` over every frame (predictions from ``segment/``); None: semantics
             off (``labels_source`` ``off``).
@@ -463,32 +516,49 @@ def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *,
             has one), ``segment`` (``segment/<key>_metal.png`` predictions, when every frame has one) or ``none``.
 
     Raises:
-        DarsError: ``colour.json`` lacks a transform for a frame of the scene.
+        DarsError: ``colour.json`` lacks a transform for a frame of the scene, or a prior map is not a scaled copy
+            of its frame.
     """
     V = len(scene)
+    hs, ws = scene.cameras.height, scene.cameras.width
+    labs = None
     if labels is None:
-        labs, lab_src = None, "off"
+        lab_src = "off"
     else:
         seg_dir = priors_path(scene, "segment", priors_root)
-        labs, src = labels_for(scene, labels, seg_dir)
-        labs = None if labs is None else labs.to(torch.uint8)
+        src = label_source(scene, labels, seg_dir)
+        if src != "none":
+            labs = PackedViews.allocate(hs, ws, dtype=torch.uint8)
+            for i in range(V):
+                labs.write(i, frame_labels(scene, i, src, seg_dir))
         lab_src = {"scene": "provided", "segment": f"predicted ({seg_dir})"}.get(src, "none")
     metal_mask, metal_src = None, "none"
     if metal == "scene" and scene.has_extra("metal"):
-        metal_mask, metal_src = torch.stack([scene.load_extra(i, "metal") for i in range(V)]), "provided"
+        metal_mask, metal_src = PackedViews.allocate(hs, ws, dtype=torch.bool), "provided"
+        for i in range(V):
+            metal_mask.write(i, scene.load_extra(i, "metal"))
     elif metal == "segment":
         seg_dir = priors_path(scene, "segment", priors_root)
         mfiles = [seg_dir / f"{f.key}_metal.png" for f in scene.frames]
         if all(p.is_file() for p in mfiles):
-            ms = [np.asarray(read_map(p, f"predicted metal mask {p}")) for p in mfiles]
-            metal_mask = torch.from_numpy(np.stack([(m[..., 0] if m.ndim == 3 else m) > 0 for m in ms]))
+            metal_mask = PackedViews.allocate(hs, ws, dtype=torch.bool)
+            for i, p in enumerate(mfiles):
+                m = np.asarray(read_map(p, f"predicted metal mask {p}"))
+                m = (m[..., 0] if m.ndim == 3 else m) > 0
+                metal_mask.write(i, torch.from_numpy(_fit_to_frame(scene, i, m.astype(np.uint8), nearest=True) > 0))
             metal_src = f"predicted ({seg_dir})"
     out = TrainingPriors(labels=labs, labels_source=lab_src, metal=metal_mask)
     out.metal_source = metal_src
     wdir = priors_path(scene, "weights", priors_root)
     wfiles = [wdir / f"{f.key}.npy" for f in scene.frames]
     if weights and wdir.is_dir() and all(p.is_file() for p in wfiles):
-        out.weights = torch.from_numpy(np.stack([_read_weight_map(p, scene.image_size) for p in wfiles]))
+        out.weights = PackedViews.allocate(hs, ws, dtype=torch.float16)
+        resized = 0
+        for i, p in enumerate(wfiles):
+            w = _read_weight_map(p)
+            fitted = _fit_to_frame(scene, i, w, nearest=False)
+            resized += fitted.shape != w.shape
+            out.weights.write(i, torch.from_numpy(np.ascontiguousarray(fitted)))
         meta_p = wdir / "weights.json"
         out.distortion = torch.zeros(V)
         if meta_p.is_file():
@@ -499,7 +569,7 @@ def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *,
                 raise DarsError(f"priors weights.json {meta_p} has a malformed 'images' list ({e}); "
                                 f"{_rerun('weights', scene)}") from e
             out.distortion = torch.tensor([per.get(f.key, 0.0) for f in scene.frames])
-        out.weights_source = f"loaded ({wdir})"
+        out.weights_source = f"loaded ({wdir})" + (f", {resized} resized to the frames' size" if resized else "")
     light_json = priors_path(scene, "light", priors_root) / "light.json"
     if light_json.is_file():
         d = read_json(light_json, "priors light.json", _rerun("light", scene))
@@ -535,14 +605,15 @@ def _rerun(stage: str, scene: "Scene") -> str:
     return f"re-run `dars priors {stage} {scene.source}` (or delete the file to train without it)"
 
 
-def _read_weight_map(path: Path, hw: tuple[int, int]) -> np.ndarray:
-    """A W map written by :func:`priors_weights`, as float32 [H, W] (a damaged file names itself)."""
+def _read_weight_map(path: Path) -> np.ndarray:
+    """A W map written by :func:`priors_weights`, as float32 [H, W] (a damaged file names itself; the size is checked
+    against its frame by :func:`_fit_to_frame`, which resizes a map made at another ``--downscale``)."""
     try:
         w = np.asarray(np.load(path, allow_pickle=False), dtype=np.float32)
     except Exception as e:  # noqa: BLE001 - numpy raises several types for a damaged .npy
         raise DarsError(f"priors weight map {path} is truncated or corrupt ({e}); re-run `dars priors weights` "
                         "(or delete the weights folder: the trainer then computes W itself)") from e
-    if w.shape != tuple(hw):
-        raise DarsError(f"priors weight map {path} is {list(w.shape)} but the images are {list(hw)}; re-run "
-                        "`dars priors weights` on this scene")
+    if w.ndim != 2:
+        raise DarsError(f"priors weight map {path} has shape {list(w.shape)}, not [H, W]; re-run `dars priors weights` "
+                        "on this scene")
     return w

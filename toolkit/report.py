@@ -327,7 +327,9 @@ def _training_md(t: dict) -> str:
     sw = t["switches"]
     yes = lambda b: "on" if b else "off"  # noqa: E731
     rows = [[str(t["steps"]), f"{t['minutes']:.2f}", t["preset"], t["variant"], yes(sw["dars"]), yes(sw["semantics"]),
-             "fixed" if sw["fixed_light"] else "optimised", yes(sw["mat_loss"]), sw["baseline"] or "-",
+             "fixed" if sw["fixed_light"] else "optimised",
+             yes(sw["mat_loss"]) + (" (no class terms)" if sw["mat_loss"] and not sw.get("mat_labels", True) else ""),
+             sw["baseline"] or "-",
              yes(t["albedo_supervision"]), str(t["seed"])]]
     tab = _md_table(["steps", "minutes", "preset", "variant", "DARS", "semantics", "light", "L_mat", "baseline",
                      "albedo supervision", "seed"], rows)
@@ -459,13 +461,14 @@ def write_ablation_report(result, out_dir: str | Path) -> dict[str, Path]:
     out.mkdir(parents=True, exist_ok=True)
     doc = result.to_json()
     written: dict[str, Path] = {}
-    by_name = {v.name: v for v in result.variants}
+    runs = result.first_seed_runs()  # the figures show the first seed's run of every variant
+    by_name = {v.name: v for v in runs}
     # Fig. 8: every variant on the same patch and views
     curves: dict[str, dict] = {}
     gt = None
     units = "relative luminance"
     patch_views: list[dict] = []
-    for v in result.variants:
+    for v in runs:
         vc = v.evaluation.details.get("view_consistency")
         if vc:
             curves[v.label] = {"keys": vc["keys"], "means": vc["render_means"]}
@@ -481,9 +484,9 @@ def write_ablation_report(result, out_dir: str | Path) -> dict[str, Path]:
             if p:
                 written["brightness"] = p
     # Fig. 7: the full model's W and samples next to the uniform-sampling variants
-    base = by_name.get("full") or (result.variants[0] if result.variants else None)
+    base = by_name.get("full") or (runs[0] if runs else None)
     if base is not None and base.evaluation.figures.weights:
-        comps = {v.label: v.evaluation.figures.weights for v in result.variants
+        comps = {v.label: v.evaluation.figures.weights for v in runs
                  if v is not base and not v.evaluation.training["switches"]["dars"] and v.evaluation.figures.weights}
         p = plot_weights(base.evaluation.figures.weights, out / "ablation_weights.png", comps)
         if p:
@@ -499,32 +502,68 @@ def _delta(d, fmt: str) -> str:
     return "" if d is None else f" ({'+' if d >= 0 else '−'}{fmt.format(abs(d))})"
 
 
+def _pm(st: dict, fmt: str, signed: bool = False) -> str:
+    """``mean ± std`` of a :func:`~toolkit.ablation.seed_statistics` entry (``n/a`` without values)."""
+    if st is None or st.get("mean") is None:
+        return "n/a"
+    m = st["mean"]
+    txt = (("+" if m >= 0 else "−") + fmt.format(abs(m))) if signed else fmt.format(m)
+    return txt + ("" if st.get("std") is None else f" ± {fmt.format(st['std'])}")
+
+
+def _signed(x, fmt: str) -> str:
+    return "n/a" if x is None else ("+" if x >= 0 else "−") + fmt.format(abs(x))
+
+
 def _ablation_markdown(doc: dict, written: dict, out: Path) -> str:
+    from .ablation import STAT_KEYS
+
     b = doc["budget"]
+    seeds = doc.get("seeds") or [doc["seed"]]
+    multi = len(seeds) > 1
     budget = f"{b['steps']} steps" if b.get("steps") else f"{b['minutes']:g} minutes of training"
+    nv = len(doc["variants"])
+    seed_txt = (f"seeds {', '.join(map(str, seeds))} (every variant once per seed)" if multi else f"seed {seeds[0]}")
     L = [f"# Ablation (Table 6 layout): `{doc['scene']}`", "",
-         f"Six variants of one trainer (`toolkit.train.make_config` switches), each trained for **{budget}** with "
-         f"preset `{doc['preset']}` and seed {doc['seed']}, one after another, then evaluated on the `{doc['split']}` "
-         "split by `toolkit.evaluate.evaluate_run`. Every number is also in [ablation.json](ablation.json).", ""]
+         f"{nv} variant{'s' if nv != 1 else ''} of one trainer (`toolkit.train.make_config` switches), each trained for "
+         f"**{budget}** per run with preset `{doc['preset']}` and {seed_txt}, one after another, then evaluated on the "
+         f"`{doc['split']}` split by `toolkit.evaluate.evaluate_run`. Every number is also in "
+         "[ablation.json](ablation.json).", ""]
     if b.get("minutes") and not b.get("steps"):
-        L += ["A wall-clock budget gives every variant the same minutes; its step count depends on its speed and on "
-              "the machine's load, so compare on a quiet machine.", ""]
+        steps = {f"{v['label']}" + (f" (seed {r['seed']})" if multi else ""): r["training"]["steps"]
+                 for v in doc["variants"] for r in v.get("runs", [v])}
+        L += ["**Warning — " + b.get("warning", "wall-clock budget: the variants trained different numbers of steps.")
+              + "** Steps trained: " + ", ".join(f"{k} {n}" for k, n in steps.items()) + ".", ""]
     head = ["variant", "steps", "min"] + [f"{t} {_arrow(h)}" for _, t, _, h in ABLATION_COLUMNS]
     rows = []
     for v in doc["variants"]:
         m, d = v["metrics"], v["delta_vs_full"]
-        cells = [v["label"], str(v["training"]["steps"]), f"{v['training']['minutes']:.2f}"]
+        runs = v.get("runs") or [v]
+        st = sorted({r["training"]["steps"] for r in runs})
+        mins = [r["training"]["minutes"] for r in runs]
+        cells = [v["label"], str(st[0]) if len(st) == 1 else f"{st[0]}–{st[-1]}", f"{sum(mins) / len(mins):.2f}"]
         for k, _, f, _ in ABLATION_COLUMNS:
             val = m.get(k)
-            cells.append("n/a" if val is None else f.format(val) + (_delta(d.get(k), f) if v["name"] != "full" else ""))
+            if val is None:
+                cells.append("n/a")
+                continue
+            sd = (v.get("summary") or {}).get(k, {}).get("std") if multi else None
+            cells.append(f.format(val) + ("" if sd is None else f" ± {f.format(sd)}")
+                         + (_delta(d.get(k), f) if v["name"] != "full" else ""))
         rows.append(cells)
-    L += [_md_table(head, rows), "",
-          "In parentheses: difference to the full model (variant − full). n/a: the metric is unavailable for that "
-          "variant (reasons below).", ""]
+    L += [_md_table(head, rows), ""]
+    if multi:
+        L += ["Mean ± sample standard deviation over the seeds (min: mean minutes per run). In parentheses: the mean "
+              "paired difference to the full model (variant − full, same seed; its spread is in the tables below). "
+              "n/a: the metric is unavailable for that variant (reasons below).", ""]
+    else:
+        L += ["In parentheses: difference to the full model (variant − full). n/a: the metric is unavailable for that "
+              "variant (reasons below).", ""]
     reasons: dict[tuple[str, str], list[str]] = {}
+    shown = {c for c, _, _, _ in ABLATION_COLUMNS} | set(STAT_KEYS)
     for v in doc["variants"]:
         for k, r in v["unavailable"].items():
-            if k in {c for c, _, _, _ in ABLATION_COLUMNS}:
+            if k in shown:
                 reasons.setdefault((k, r), []).append(v["label"])
     if reasons:
         n = len(doc["variants"])
@@ -532,26 +571,120 @@ def _ablation_markdown(doc: dict, written: dict, out: Path) -> str:
         L += [f"- **{k}** ({'all variants' if len(labs) == n and n > 1 else ', '.join(labs)}): {r}"
               for (k, r), labs in reasons.items()]
         L.append("")
+    if all("summary" in v for v in doc["variants"]):
+        L += _seed_sections(doc, multi)
+    L += ["## What each variant removes", ""]
+    L += [f"- **{v['label']}** (`{v['name']}`): {v.get('removes') or 'n/a'}" for v in doc["variants"]]
+    L.append("")
+    L += _inputs_section(doc, multi)
     if "brightness" in written:
         L += ["## Cross-view brightness (Fig. 8)", "", "![cross-view brightness](ablation_brightness.png)", "",
               "Mean luminance of the same surface patch over the same K views for every variant (legend: its sample "
-              "std = view consistency) and the ground truth (dashed).", ""]
+              "std = view consistency) and the ground truth (dashed)" + (f"; seed {seeds[0]}'s runs" if multi else "")
+              + ".", ""]
     if "weights" in written:
         L += ["## Sampling (Fig. 7)", "", "![W and samples per ray](ablation_weights.png)", "",
               "Training views of the full model: photo | W | all samples per ray | fine samples per ray under DARS "
               "(budget ∝ W), beside the fine samples per ray of the uniform-sampling variants (same views, same "
-              "colour scale). Per-view means are in each variant's `sampling` entry of ablation.json.", ""]
+              "colour scale" + (f", seed {seeds[0]}'s runs" if multi else "") + "). Per-view means are in each "
+              "variant's `sampling` entry of ablation.json.", ""]
     L += ["## Per-variant reports", ""]
     for v in doc["variants"]:
-        rep = Path(v["run"]) / "eval" / "report.md"
-        rel = os.path.relpath(rep, out) if rep.is_file() else None
-        L.append(f"- {v['label']}: run `{v['run']}`" + (f", [report]({rel})" if rel else "")
-                 + (" (reused an existing run)" if v.get("reused") else ""))
+        for r in v.get("runs") or [v]:
+            rep = Path(r["run"]) / "eval" / "report.md"
+            rel = os.path.relpath(rep, out) if rep.is_file() else None
+            L.append(f"- {v['label']}" + (f", seed {r['seed']}" if multi else "") + f": run `{r['run']}`"
+                     + (f", [report]({rel})" if rel else "") + (" (reused an existing run)" if r.get("reused") else ""))
     return "\n".join(L) + "\n"
 
 
+def _seed_sections(doc: dict, multi: bool) -> list[str]:
+    """Per-seed figures, paired differences against ``full`` and the seed-noise sentences."""
+    from .ablation import STAT_KEYS
+
+    cols = [_COLUMNS[k] for k in STAT_KEYS]
+    L = ["## Per seed", ""]
+    head = ["variant", "seed", "steps"] + [f"{t} {_arrow(h)}" for _, t, _, h in cols]
+    rows = []
+    for v in doc["variants"]:
+        for i, r in enumerate(v["runs"]):
+            rows.append([v["label"], str(r["seed"]), str(r["training"]["steps"])]
+                        + [_fmt(v["per_seed"][k][i], f) for k, _, f, _ in cols])
+        if multi:
+            rows.append([f"{v['label']} — mean ± std", f"n = {len(v['runs'])}", ""]
+                        + [_pm(v["summary"][k], f) for k, _, f, _ in cols])
+    L += [_md_table(head, rows), "", "Standard deviations are sample standard deviations (n − 1) over the seeds.", ""]
+    if not any(v.get("paired_vs_full") for v in doc["variants"] if v["name"] != "full"):
+        return L
+    L += ["## Paired differences against the full model", "",
+          "Variant − full, trained with the same seed; per seed, then mean ± std of the difference (n pairs).", ""]
+    head = ["variant", "seed"] + [f"Δ {t}" for _, t, _, _ in cols]
+    rows = []
+    for v in doc["variants"]:
+        pv = v.get("paired_vs_full")
+        if v["name"] == "full" or not pv:
+            continue
+        for i, r in enumerate(v["runs"]):
+            rows.append([v["label"], str(r["seed"])] + [_signed(pv[k]["values"][i], f) for k, _, f, _ in cols])
+        if multi:
+            rows.append([f"{v['label']} — mean ± std", f"n = {pv['psnr']['n']}"]
+                        + [_pm(pv[k], f, signed=True) for k, _, f, _ in cols])
+    L += [_md_table(head, rows), ""]
+    notes = [f"- **{v['label']}**: {v['noise_note']}" for v in doc["variants"]
+             if v["name"] != "full" and v.get("noise_note")]
+    if notes:
+        L += ["Seed noise: a paired difference whose mean is smaller than its standard deviation over seeds is "
+              "**within seed noise** — the variant is not shown to differ from the full model on that metric.", ""]
+        L += notes
+        L.append("")
+    return L
+
+
+def _inputs_section(doc: dict, multi: bool) -> list[str]:
+    """Which inputs were ground truth: each run's ``labels`` setting (its config.json) and the recorded sources."""
+    rows = []
+    for v in doc["variants"]:
+        for r in v.get("runs") or []:
+            i = r.get("inputs") or {}
+            rows.append([v["label"]] + ([str(r["seed"])] if multi else [])
+                        + [str(i.get("labels")), str(i.get("labels_source")), str(i.get("labels_used_by") or "-"),
+                           str(i.get("metal_source")), "on" if i.get("albedo_supervision") else "off",
+                           ", ".join(i.get("ground_truth") or []) or "none"])
+    if not rows:
+        return []
+    head = ["variant"] + (["seed"] if multi else []) + ["labels (config.json)", "label source", "labels used by",
+                                                        "metal mask", "albedo supervision", "ground-truth inputs"]
+    gt = (doc.get("inputs") or {}).get("ground_truth") or []
+    L = ["## Inputs", "", _md_table(head, rows), ""]
+    unlabelled = sorted({v["label"] for v in doc["variants"] for r in v.get("runs") or []
+                         if v["name"] in ("full", "no_semantics", "no_mat_loss")
+                         and str((r.get("inputs") or {}).get("labels_source")) in ("none", "off", "None")})
+    if unlabelled:
+        L += ["**No labels** reached " + ", ".join(unlabelled) + " (label source none: no segmentation prior, or "
+              "`--labels none`): the semantic input and L_mat's class terms were inactive there, so those variants do "
+              "not measure them. Run `dars priors segment` first, or pass `--labels ground-truth` (then the labels "
+              "are ground truth).", ""]
+    L.append("Ground truth fed to training: " + (", ".join(gt) + " — scores that compare against the same ground "
+                                                 "truth are not independent." if gt else "none.") + "")
+    L.append("")
+    return L
+
+
 def ablation_text(doc: dict) -> str:
-    """The Table 6 metrics of an ``ablation.json`` document as a plain-text table for the terminal."""
+    """The Table 6 metrics of an ``ablation.json`` document as a plain-text table for the terminal (mean ± std over
+    seeds and the seed-noise notes when there are several seeds)."""
     header = ["variant"] + [t for _, t, _, _ in ABLATION_COLUMNS]
-    return text_table(header, [[v["label"]] + _metric_cells(v["metrics"], ABLATION_COLUMNS) for v in doc["variants"]],
-                      first_left=True)
+    seeds = doc.get("seeds") or [doc.get("seed")]
+    if len(seeds) <= 1 or not all("summary" in v for v in doc["variants"]):
+        return text_table(header, [[v["label"]] + _metric_cells(v["metrics"], ABLATION_COLUMNS)
+                                   for v in doc["variants"]], first_left=True)
+    rows = [[v["label"]] + [_pm(v["summary"][k], f) for k, _, f, _ in ABLATION_COLUMNS] for v in doc["variants"]]
+    lines = [f"seeds {', '.join(map(str, seeds))}: mean ± sample std", text_table(header, rows, first_left=True)]
+    lines += [f"{v['label']} vs full (paired): " + ", ".join(
+        f"{k} {_pm(v['paired_vs_full'][k], _FORMATS.get(k, '{:.4g}'), signed=True)}"
+        for k in ("psnr", "ssim", "albedo_mae") if v["paired_vs_full"][k]["mean"] is not None)
+        + (f" — {v['noise_note']}" if v.get("noise_note") else "")
+        for v in doc["variants"] if v["name"] != "full" and v.get("paired_vs_full")]
+    if doc["budget"].get("warning"):
+        lines.append("warning: " + doc["budget"]["warning"])
+    return "\n".join(lines)

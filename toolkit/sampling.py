@@ -8,8 +8,9 @@ rendered on the union (NeRF's coarse + fine scheme with one field).
 **DARS** (``dars=True``; SPEC stage 7, paper eqs. 4–7), four parts:
 
 1. *ray selection* — training pixels are drawn with probability ∝ (1 − ρ) + ρ·W(pixel), and each ray carries
-   the importance weight ``(1 / N_pix) / p`` so the loss stays an unbiased estimate of the uniform-pixel loss
-   (:func:`build_ray_sampler`, :func:`select_rays`);
+   the importance weight ``(1 / N_pix) / p`` so the loss stays an unbiased estimate of the uniform-pixel loss; a
+   view is picked by its total weight, then a pixel of it by rejection sampling, so nothing is held per pixel
+   beyond W itself and views may differ in size (:func:`build_ray_sampler`, :func:`select_rays`);
 2. *per-ray budget* — the fine samples of a batch total ``n_fine · R`` (fixed), split ∝ W, clamped to
    [``budget_min``, ``budget_max``] = [1, 12]; rays with W ≤ τ = 0.7 get at most the uniform share, so the
    extra samples go only where W > τ (:func:`ray_budgets`);
@@ -31,6 +32,7 @@ import torch
 from ._checks import ConfigError, check_range, check_shape
 from .render import PackedSamples, ray_starts
 from .scene import Cameras, RayBundle
+from .pixels import PackedViews
 from .space import SceneSpace, contracted_edges, uncontract
 
 __all__ = [
@@ -361,56 +363,135 @@ def merge_samples(t_a: torch.Tensor, ray_a: torch.Tensor, t_b: torch.Tensor, ray
 # ====================================================================== DARS: ray selection and budgets
 @dataclass(frozen=True)
 class RaySampler:
-    """Precomputed pixel-selection distribution over all training pixels.
+    """Pixel selection ∝ (1 − ρ) + ρ·W over every training pixel, without a table over all of them.
+
+    A draw picks a view with probability ∝ its total weight ``Σ_pixels (1 − ρ) + ρ·W``, then a pixel of that view by
+    rejection sampling: a uniform pixel is kept with probability ``(1 − ρ) + ρ·W ≤ 1`` (so at least 1 − ρ of the
+    proposals are kept). Memory: the W buffer the trainer holds anyway plus [V] numbers (the old float64 CDF over all
+    pixels cost 12 bytes a pixel).
 
     Attributes:
-        cdf: float64 [P] cumulative probabilities over flattened (view, row, col) pixels.
-        prob: float32 [P] per-pixel probabilities (sum 1).
+        layout: a :class:`toolkit.pixels.PackedViews` giving the view sizes (its data is W, or unused when ``weights``
+            is None).
+        weights: W [P] in [0, 1] (packed), or None for uniform selection.
+        valid: bool [P] pixels that may be drawn (packed), or None for all.
+        rho: mixing weight ρ.
+        view_cdf: float64 [V] cumulative view probabilities.
+        total: Σ over all pixels of the unnormalised probability (the normaliser of p).
         n_pixels: P.
-        shape: (V, H, W).
     """
 
-    cdf: torch.Tensor
-    prob: torch.Tensor
+    layout: PackedViews
+    weights: PackedViews | None
+    valid: PackedViews | None
+    rho: float
+    view_cdf: torch.Tensor
+    total: float
     n_pixels: int
-    shape: tuple[int, int, int]
+
+    def pixel_weight(self, flat: torch.Tensor) -> torch.Tensor:
+        """float64 [N] unnormalised probability (1 − ρ) + ρ·W (0 where not valid) of buffer indices ``flat`` [N]."""
+        if self.weights is None:
+            p = torch.ones(flat.shape[0], dtype=torch.float64)
+        else:
+            p = (1.0 - self.rho) + self.rho * self.weights.gather(flat).double().clamp(0.0, 1.0).cpu()
+        if self.valid is not None:
+            p = p * self.valid.gather(flat).double().cpu()
+        return p
 
 
-def build_ray_sampler(weights: torch.Tensor | None, shape: tuple[int, int, int], rho: float,
-                      valid: torch.Tensor | None = None) -> RaySampler:
-    """Pixel probabilities ∝ (1 − ρ) + ρ·W (uniform when ``weights`` is None or ρ = 0).
+def _as_packed(maps, name: str) -> PackedViews | None:
+    if maps is None or isinstance(maps, PackedViews):
+        return maps
+    if isinstance(maps, torch.Tensor):
+        return PackedViews.from_maps(maps)
+    raise ConfigError(f"{name}: expected a PackedViews or a tensor [V, H, W], got {type(maps).__name__}")
+
+
+def build_ray_sampler(weights: PackedViews | torch.Tensor | None, shape: PackedViews | tuple[int, int, int], rho: float,
+                      valid: PackedViews | torch.Tensor | None = None) -> RaySampler:
+    """Pixel probabilities ∝ (1 − ρ) + ρ·W (uniform when ``weights`` is None or ρ = 0), views of any sizes.
 
     Args:
-        weights: float [V, H, W] DARS weight maps in [0, 1], or None.
-        shape: (V, H, W).
+        weights: W in [0, 1]: a :class:`toolkit.pixels.PackedViews` (uint8-quantised or float) or a float tensor
+            [V, H, W], or None.
+        shape: the view sizes: a ``PackedViews`` (e.g. the images), or (V, H, W) when all views share one size.
         rho: mixing weight.
-        valid: bool [V, H, W] pixels that may be drawn (e.g. inside the image mask), or None for all.
+        valid: bool pixels that may be drawn (e.g. inside the image mask), packed or [V, H, W], or None for all.
+
+    Raises:
+        ConfigError: the sizes of ``weights``/``valid`` disagree with ``shape``, or no pixel may be drawn.
     """
-    V, H, W = shape
-    if weights is None or rho == 0.0:
-        p = torch.ones(V * H * W, dtype=torch.float64)
+    if isinstance(shape, PackedViews):
+        layout = shape
     else:
-        check_shape(weights, f"{V} {H} {W}", "weights")
-        p = (1.0 - rho) + rho * weights.reshape(-1).double().clamp(0.0, 1.0)
-    if valid is not None:
-        p = p * valid.reshape(-1).double()
-    total = p.sum()
-    if total <= 0:
+        V, H, W = (int(x) for x in shape)
+        layout = PackedViews(torch.zeros(0), torch.full((V,), H), torch.full((V,), W),
+                             torch.arange(V + 1, dtype=torch.long) * (H * W))
+    weights = None if rho == 0.0 else _as_packed(weights, "weights")
+    valid = _as_packed(valid, "valid")
+    for name, m in (("weights", weights), ("valid", valid)):
+        if m is not None and (len(m) != len(layout) or not torch.equal(m.heights.cpu(), layout.heights.cpu())
+                              or not torch.equal(m.widths.cpu(), layout.widths.cpu())):
+            raise ConfigError(f"{name}: view sizes {list(zip(m.heights.tolist(), m.widths.tolist()))[:4]} differ from "
+                              f"the views' {list(zip(layout.heights.tolist(), layout.widths.tolist()))[:4]}")
+    counts = (layout.heights * layout.widths).double().cpu()
+    if weights is None:
+        per_view = counts.clone() if valid is None else valid.sums()
+    elif valid is None:
+        per_view = (1.0 - rho) * counts + rho * weights.sums()
+    else:  # masked views: sum (1 - rho + rho W) over the valid pixels, view by view
+        per_view = torch.zeros(len(layout), dtype=torch.float64)
+        for i in range(len(layout)):
+            m = valid.raw(i).reshape(-1).cpu()
+            per_view[i] = float(((1.0 - rho) + rho * weights[i].reshape(-1).double().cpu()[m]).sum())
+    total = float(per_view.sum())
+    if not total > 0:
         raise ConfigError("no valid training pixels to sample (all masked out)")
-    p = p / total
-    return RaySampler(cdf=torch.cumsum(p, 0), prob=p.float(), n_pixels=V * H * W, shape=shape)
+    return RaySampler(layout=layout, weights=weights, valid=valid, rho=float(rho),
+                      view_cdf=torch.cumsum(per_view / total, 0), total=total, n_pixels=layout.n_pixels)
 
 
-def select_rays(sampler: RaySampler, n: int, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Draw ``n`` pixels (with replacement) from the sampler.
+def select_rays(sampler: RaySampler, n: int, generator: torch.Generator | None = None,
+                max_rounds: int = 64) -> tuple[torch.Tensor, torch.Tensor]:
+    """Draw ``n`` pixels (with replacement) from the sampler: a view by its total weight, then a pixel of it by
+    rejection sampling; draws still rejected after ``max_rounds`` rounds (a view whose W is almost all zero with
+    ρ = 1, or mostly masked out) are drawn exactly from their view's own CDF.
 
     Returns:
-        (flat pixel indices int64 [n], importance weights float [n] = (1 / P) / p(pixel), mean ≈ 1).
+        (buffer indices int64 [n] — ``view * H * W + row * W + col`` when all views share one size; see
+        :meth:`toolkit.pixels.PackedViews.locate` —, importance weights float [n] = (1 / P) / p(pixel), mean ≈ 1).
     """
-    u = torch.rand(n, generator=generator, dtype=torch.float64) * float(sampler.cdf[-1])
-    idx = torch.searchsorted(sampler.cdf, u, right=True).clamp(max=sampler.n_pixels - 1)
-    weight = (1.0 / sampler.n_pixels) / sampler.prob[idx].double().clamp_min(1e-30)
-    return idx, weight.float()
+    lay = sampler.layout
+    offsets = lay.offsets.cpu()
+    sizes = (lay.heights * lay.widths).cpu()
+    u = torch.rand(n, generator=generator, dtype=torch.float64)
+    views = torch.searchsorted(sampler.view_cdf, u * float(sampler.view_cdf[-1]), right=True).clamp(max=len(lay) - 1)
+    flat = torch.empty(n, dtype=torch.long)
+    todo = torch.arange(n)
+    uniform = sampler.weights is None and sampler.valid is None
+    for _ in range(max_rounds):
+        if todo.numel() == 0:
+            break
+        v = views[todo]
+        cand = offsets[v] + (torch.rand(todo.numel(), generator=generator, dtype=torch.float64)
+                             * sizes[v]).long().clamp(max=sizes[v] - 1)
+        if uniform:
+            flat[todo] = cand
+            todo = todo[:0]
+            break
+        keep = torch.rand(todo.numel(), generator=generator, dtype=torch.float64) < sampler.pixel_weight(cand)
+        flat[todo[keep]] = cand[keep]
+        todo = todo[~keep]
+    for vi in torch.unique(views[todo]).tolist():  # the rare leftovers: exact inverse CDF within their view
+        sel = todo[views[todo] == vi]
+        cand = torch.arange(int(offsets[vi]), int(offsets[vi + 1]))
+        cdf = torch.cumsum(sampler.pixel_weight(cand), 0)
+        r = torch.rand(sel.numel(), generator=generator, dtype=torch.float64) * float(cdf[-1])
+        flat[sel] = cand[torch.searchsorted(cdf, r, right=True).clamp(max=cand.numel() - 1)]
+    p = sampler.pixel_weight(flat) / sampler.total
+    weight = (1.0 / sampler.n_pixels) / p.clamp_min(1e-300)
+    return flat, weight.float()
 
 
 def ray_budgets(w: torch.Tensor, mean_budget: int, tau: float, lo: int, hi: int) -> torch.Tensor:
@@ -486,7 +567,7 @@ def projection_matrices(cameras: Cameras) -> torch.Tensor:
 
 
 def average_other_view_weights(points: torch.Tensor, ray_views: torch.Tensor, neighbours: torch.Tensor,
-                               cameras: Cameras, weight_maps: torch.Tensor,
+                               cameras: Cameras, weight_maps: PackedViews | torch.Tensor,
                                projections: torch.Tensor | None = None) -> torch.Tensor:
     """W̄(x): mean of W_j(Π_j(x)) over the neighbour views j of each point's ray view (nearest-pixel lookups —
     the maps are smooth by construction; views where x falls outside the image or behind the camera are left
@@ -496,8 +577,9 @@ def average_other_view_weights(points: torch.Tensor, ray_views: torch.Tensor, ne
         points: float [S, 3] world points.
         ray_views: int64 [S] row of ``neighbours`` for each point (its ray's training view).
         neighbours: int64 [V', k] from :func:`neighbour_views`.
-        cameras: the training cameras (all share one image size).
-        weight_maps: float [V, H, W] in [0, 1].
+        cameras: the training cameras (each view its own size: ``cameras.width``/``height``).
+        weight_maps: W in [0, 1] of the training views: packed (:class:`toolkit.pixels.PackedViews`, views of any
+            sizes, uint8-quantised or float) or a float tensor [V, H, W].
         projections: float [V, 3, 4] from :func:`projection_matrices` (computed when None).
 
     Returns:
@@ -506,7 +588,7 @@ def average_other_view_weights(points: torch.Tensor, ray_views: torch.Tensor, ne
     S = points.shape[0]
     if S == 0 or neighbours.shape[1] == 0:
         return points.new_zeros(S)
-    V, H, W = weight_maps.shape
+    wm = _as_packed(weight_maps, "weight_maps").to(points.device)
     P = projection_matrices(cameras).to(points) if projections is None else projections.to(points)
     nb = neighbours.to(points.device)[ray_views]  # [S, k]
     proj = torch.einsum("skij,sj->ski", P[nb][..., :3], points) + P[nb][..., 3]  # [S, k, 3]
@@ -514,8 +596,11 @@ def average_other_view_weights(points: torch.Tensor, ray_views: torch.Tensor, ne
     ds = d.clamp_min(1e-9)
     u = torch.floor(proj[..., 0] / ds)
     v = torch.floor(proj[..., 1] / ds)
+    H = wm.heights[nb].to(u.dtype)
+    W = wm.widths[nb].to(u.dtype)
     ok = (d > 1e-6) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-    pix = (v.clamp(0, H - 1) * W + u.clamp(0, W - 1)).long()
-    val = weight_maps.reshape(V, -1).to(points)[nb, pix]
+    uu = torch.minimum(u.clamp_min(0), W - 1).long()
+    vv = torch.minimum(v.clamp_min(0), H - 1).long()
+    val = wm.gather(wm.flat_index(nb, vv, uu)).to(points)
     okf = ok.to(points.dtype)
     return (val * okf).sum(-1) / okf.sum(-1).clamp_min(1.0)

@@ -1,4 +1,4 @@
-"""``dars eval`` (metrics + report of one run) and ``dars ablate`` (Table 6 under one budget)."""
+"""``dars eval`` (metrics + report of one run) and ``dars ablate`` (Table 6 under one budget, one or several seeds)."""
 
 from __future__ import annotations
 
@@ -32,21 +32,32 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--quiet", action="store_true", help="no progress bar")
     q.set_defaults(func=cmd_eval)
 
-    q = sub.add_parser("ablate", help="train and evaluate the Table 6 variants under one budget and seed")
+    q = sub.add_parser("ablate", help="train and evaluate the Table 6 variants under one budget, over one or "
+                                      "several seeds (mean ± std, paired differences against the full model)")
     q.add_argument("scene", help="scene directory or file")
-    q.add_argument("--out", required=True, help="output directory (one run per variant, ablation.json/.md)")
+    q.add_argument("--out", required=True, help="output directory (one run per variant and seed: OUT/VARIANT/ with "
+                                                "one seed, OUT/VARIANT/seed_S/ with several; ablation.json/.md)")
     q.add_argument("--preset", default="fast", choices=["fast", "paper"])
     g = q.add_mutually_exclusive_group(required=True)
-    g.add_argument("--minutes", type=number(float, above=0), default=0.0, help="wall-clock training budget per variant")
-    g.add_argument("--steps", type=number(int, min=1), default=0, help="training steps per variant")
-    q.add_argument("--seed", type=COUNT, default=0)
+    g.add_argument("--minutes", type=number(float, above=0), default=0.0,
+                   help="wall-clock training budget per run (the variants then train different step counts)")
+    g.add_argument("--steps", type=number(int, min=1), default=0,
+                   help="training steps per run (equal steps: the budget to compare variants with)")
+    s = q.add_mutually_exclusive_group()
+    s.add_argument("--seed", type=COUNT, default=None, help="the one seed of every variant (default 0)")
+    s.add_argument("--seeds", type=_seed_list, default=None,
+                   help="comma-separated seeds, e.g. 0,1,2: every variant once per seed")
     from ..ablation import VARIANTS  # imports nothing heavy
 
-    q.add_argument("--variants", nargs="+", choices=list(VARIANTS), help="subset of variants (default: all six)")
+    q.add_argument("--variants", nargs="+", choices=list(VARIANTS), help="subset of variants (default: all six); "
+                   "no_semantics removes the semantic input (L_semantic, label edges in W), no_mat_loss removes L_mat")
     q.add_argument("--split", default="test", help="split to evaluate")
     q.add_argument("--limit", type=COUNT, default=0, help="evaluate at most N views per variant")
     q.add_argument("--lpips-weights", help="LPIPS weight file(s)/folder")
     q.add_argument("--batch-rays", type=COUNT, default=0, help="override rays per step (every variant; ≥ 16)")
+    q.add_argument("--labels", default="predicted", choices=("predicted", "ground-truth", "none"),
+                   help="label and metal-mask source of every variant, as dars train --labels (default: predicted, "
+                        "the segmentation prior's; the report lists which inputs were ground truth)")
     q.add_argument("--priors", help="directory holding the prior stages' outputs, as dars train --priors "
                                     "(default: <scene>/priors)")
     q.add_argument("--force", action="store_true", help="write into a non-empty folder beside its files")
@@ -54,6 +65,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--json", action="store_true", help="print only ablation.json on stdout")
     q.add_argument("--quiet", action="store_true", help="no progress bars")
     q.set_defaults(func=cmd_ablate)
+
+
+def _seed_list(text: str) -> list[int]:
+    from ..ablation import parse_seeds
+    from .._checks import ConfigError
+
+    try:
+        return parse_seeds(text)
+    except ConfigError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -113,10 +134,13 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     from ..evaluate import EvalConfig
     from ..report import ablation_text
 
-    overrides = {"batch_rays": args.batch_rays} if args.batch_rays else {}
+    overrides: dict = {"batch_rays": args.batch_rays} if args.batch_rays else {}
+    if args.labels != "predicted":
+        overrides["labels"] = args.labels
     with out.guard():
         res = run_ablation(args.scene, out, preset=args.preset, minutes=args.minutes, steps=args.steps,
-                           seed=args.seed, variants=args.variants, overrides=overrides,
+                           seed=None if args.seeds else (args.seed or 0), seeds=args.seeds,
+                           variants=args.variants, overrides=overrides,
                            eval_cfg=EvalConfig(limit=args.limit, lpips_weights=args.lpips_weights), split=args.split,
                            progress_bar=not (args.quiet or args.json), log=log, priors_root=args.priors)
     doc = res.to_json()

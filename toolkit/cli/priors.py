@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from .._checks import DarsError
-from ._common import COUNT, FINITE, NONNEGATIVE, POSITIVE, SCENE_HELP, print_json
+from ._common import COUNT, FINITE, NONNEGATIVE, POSITIVE, SCENE_HELP, positive_int, print_json
 
 _LM = ["(0,0)", "(1,-1)", "(1,0)", "(1,1)", "(2,-2)", "(2,-1)", "(2,0)", "(2,1)", "(2,2)"]
 """(l, m) of the 9 SH coefficients, SPEC order (table rows)."""
@@ -65,6 +65,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def _common(q: argparse.ArgumentParser, stage: str) -> None:
     q.add_argument("scene", help=SCENE_HELP)
     q.add_argument("--split", default="train", help="split to process (default: train)")
+    q.add_argument("--downscale", type=positive_int, default=1, metavar="N",
+                   help="shrink the photos N times on load (default: 1; `dars train` reads maps made at another "
+                        "--downscale, resized)")
     q.add_argument("--out", default=None, help=f"output directory (default: <scene>/priors/{stage})")
     q.add_argument("--force", action="store_true",
                    help="write into a non-empty folder beside its files (files dars did not write are never replaced)")
@@ -117,7 +120,7 @@ def cmd_weights(args: argparse.Namespace) -> int:
     from ..priors import priors_weights
     from ..scene import load_scene
 
-    scene = load_scene(args.scene, args.split)
+    scene = load_scene(args.scene, args.split, downscale=args.downscale)
     cfg = WeightMapConfig(alpha=args.alpha, beta=args.beta, gamma=args.gamma, lambda_reg=args.lambda_reg)
     with _out(args, scene, "weights").guard() as out:
         s = priors_weights(scene, out, cfg, labels=args.labels, use_metal=not args.no_metal)
@@ -140,10 +143,10 @@ def cmd_segment(args: argparse.Namespace) -> int:
     from ..scene import list_splits, load_scene
     from ..segment import TrainSegmenterConfig
 
-    scene = load_scene(args.scene, args.split)
+    scene = load_scene(args.scene, args.split, downscale=args.downscale)
     eval_scene = None
     if args.eval_split != "none" and args.eval_split != args.split and args.eval_split in list_splits(args.scene):
-        eval_scene = load_scene(args.scene, args.eval_split)
+        eval_scene = load_scene(args.scene, args.eval_split, downscale=args.downscale)
     tcfg = TrainSegmenterConfig(steps=args.steps, seed=args.seed, progress=True) if args.backend == "builtin" else None
     if args.model and not Path(args.model).is_file():
         raise DarsError(f"--model {args.model}: file not found")
@@ -170,7 +173,7 @@ def cmd_colour(args: argparse.Namespace) -> int:
     from ..priors import priors_colour
     from ..scene import load_scene
 
-    scene = load_scene(args.scene, args.split)
+    scene = load_scene(args.scene, args.split, downscale=args.downscale)
     cfg = ColourConfig(detector=args.detector, gauge="reference" if args.reference is not None else args.gauge,
                        reference=args.reference or 0, srgb=scene.srgb, progress=True)
     if args.reference is not None and args.reference >= len(scene):
@@ -196,7 +199,7 @@ def cmd_light(args: argparse.Namespace) -> int:
     from ..priors import priors_light
     from ..scene import load_scene
 
-    scene = load_scene(args.scene, args.split)
+    scene = load_scene(args.scene, args.split, downscale=args.downscale)
     with _out(args, scene, "light").guard() as out:
         info = priors_light(scene, out, args.weights, args.reduce, args.batch_size)
     if args.json:

@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from .._checks import DarsError
-from ._common import COUNT, FINITE, NONNEGATIVE, number, set_threads
+from ._common import COUNT, FINITE, NONNEGATIVE, number, positive_int, set_threads
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -28,9 +28,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "into a non-empty folder beside its files (files dars did not write are never touched)")
     q.add_argument("--seed", type=COUNT, default=None, help="random seed (default: 0)")
     q.add_argument("--split", default=None, help="split to train on (default: train)")
+    q.add_argument("--downscale", type=positive_int, default=1, metavar="N",
+                   help="shrink the photos N times on load (default: 1); memory and time fall with N^2. Recorded in "
+                        "the run: render, relight, eval and --resume use the same size")
     q.add_argument("--priors", help="directory holding the prior stages' outputs (default: <scene>/priors)")
     q.add_argument("--no-dars", action="store_true", help="ablation: uniform rays + hierarchical sampling")
-    q.add_argument("--no-semantics", action="store_true", help="ablation: no semantic guidance")
+    q.add_argument("--no-semantics", action="store_true",
+                   help="ablation: no semantic input (no L_semantic, no label edges in W; L_mat keeps its class terms)")
     q.add_argument("--fixed-light", action="store_true", help="ablation: l_env fixed at its initial value")
     q.add_argument("--no-mat-loss", action="store_true", help="ablation: no L_mat")
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
@@ -187,7 +191,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     cfg = make_config(args.preset or "fast", **overrides)
     try:
         ck = train(args.scene, args.out, cfg, resume=args.resume, split=args.split or "train",
-                   progress_bar=not args.quiet, priors_root=args.priors, force=args.force)
+                   progress_bar=not args.quiet, priors_root=args.priors, force=args.force, downscale=args.downscale)
     finally:
         shutdown()
     if ddp is None or ddp.is_main:
@@ -207,7 +211,7 @@ def _views(args):
     elif args.orbit:
         return None, [f"orbit_{i:03d}" for i in range(args.orbit)]
     else:
-        scene = load_scene(meta["scene"], args.split)
+        scene = load_scene(meta["scene"], args.split, downscale=int(meta.get("downscale", 1)))
     return scene.cameras, [f.key for f in scene.frames]
 
 

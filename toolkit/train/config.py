@@ -72,7 +72,15 @@ class TrainConfig:
     shading: Literal["pbr", "radiance"] = "pbr"
     """``pbr``: decomposed (material + SH light); ``radiance``: plain NeRF colour head (baseline)."""
     semantics: bool = True
-    """Semantic guidance: semantic loss, labels in L_mat and in W; off = the "w/o semantics" ablation."""
+    """Semantic input: the semantic head's supervision (L_semantic against the labels) and the labels' edge term E in
+    W (eq. 3; with it, W maps precomputed by ``dars priors weights``, which include E). Off = the "w/o semantic input"
+    ablation: W is computed here from G (+ M when a metal mask exists) and the semantic head is unsupervised.
+    L_mat's class terms are not part of this switch (:attr:`mat_labels`); the metal mask's M term in W is kept."""
+    mat_labels: bool = True
+    """L_mat's class terms read the labels: painting roughness → 0.8 on painting pixels, metallic → the metal mask on
+    labelled pixels (eq. 20). Off: L_mat keeps only its ground-truth albedo term (when ``albedo_supervision``).
+    Runs saved before this field existed turned both off with ``semantics=False``; :meth:`TrainConfig.from_dict`
+    loads them as ``mat_labels=semantics``, so they resume exactly as they were trained."""
     fixed_light: bool = False
     labels: Literal["predicted", "ground-truth", "none"] = "predicted"
     """Where semantic labels and metal masks come from: ``predicted`` — the segmentation prior
@@ -141,6 +149,9 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
         d = dict(d)
+        # runs saved before "no semantic input" and "no L_mat class terms" were separate switches: semantics=False
+        # also dropped the labels from L_mat
+        d.setdefault("mat_labels", bool(d.get("semantics", True)))
         fd = dict(d.pop("field"))
         fd["grid"] = HashGridConfig(**fd["grid"])
         if "shell_faces" in fd:
@@ -168,9 +179,10 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
     ``fast``: the same decomposition, heads, PBR shading and DARS on CPU: hash-grid field (finest resolution
     from the data), 32 coarse + 8 fine samples, 4096-ray batches, L_eikonal after step 500.
 
-    Ablation switches (Table 6): ``dars=False`` (w/o DARS), ``semantics=False`` (w/o semantic guidance),
-    ``fixed_light=True``, ``mat_loss=False`` (w/o L_mat), ``baseline="nerf"`` (standard NeRF: stratified +
-    hierarchical samples, radiance head, no priors, no room prior).
+    Ablation switches (Table 6): ``dars=False`` (w/o DARS: uniform pixel selection and fine samples),
+    ``semantics=False`` (w/o semantic input: no L_semantic, no label edges E in W; L_mat keeps its class terms),
+    ``fixed_light=True``, ``mat_loss=False`` (w/o L_mat: the whole material loss, class terms included),
+    ``baseline="nerf"`` (standard NeRF: stratified + hierarchical samples, radiance head, no priors, no room prior).
     """
     check_choice(preset, PRESETS, "preset")
     if preset == "paper":

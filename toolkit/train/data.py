@@ -1,5 +1,26 @@
-"""Training data: the training views' tensors and priors (:func:`prepare_data`), read through
-:func:`toolkit.priors.read_priors`; W maps are computed here when the priors folder has none."""
+"""Training data: the training views' pixels and priors (:func:`prepare_data`), read through
+:func:`toolkit.priors.read_priors`; W maps are computed here when the priors folder has none.
+
+Memory does not grow with megapixels beyond the stored pixels themselves: every per-pixel quantity is packed
+(:class:`toolkit.pixels.PackedViews`, views of any sizes one after another) at reduced precision and converted to
+float per batch (:func:`toolkit.train.step.sample_batch`). Bytes per training pixel:
+
+=================  ====================================  =====
+quantity           storage                               bytes
+=================  ====================================  =====
+colour             uint8 x 3, ``round(255 c)``           3
+W (DARS)           float16 (rank-normalised, in [0, 1])  2
+labels             uint8 class ids (255 unlabelled)      1
+metal mask         bool                                  1
+albedo (optional)  float16 x 3 (``--albedo-supervision``) 6
+=================  ====================================  =====
+
+so 5-7 bytes a pixel (58 photos of 1 MP: 0.4 GB; the float32 images alone were 0.7 GB, and the whole loader with
+its float64 sampling table and float temporaries peaked near 30 bytes a pixel). Colour at 8 bits is exact for 8-bit
+photos (JPEG/PNG); RGBA composites and resampled (``downscale``) images round to 1/255. W at float16 keeps 11
+significant bits (an error below 2.5e-4 in [0, 1]). Images are decoded one at a time (the transient is one photo in
+float32); with ``cache_dir`` the colour buffer is a memory-mapped file on disk instead of RAM.
+"""
 
 from __future__ import annotations
 
@@ -7,9 +28,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from ..io import srgb_to_linear
+from ..pixels import PackedViews
 from ..priors import priors_path, read_priors
 from ..scene import Scene
 from .config import TrainConfig
@@ -19,31 +42,38 @@ __all__ = ["TrainData", "prepare_data", "grey_ambient_sh"]
 
 @dataclass
 class TrainData:
-    """Training-view tensors (CPU) and priors.
+    """Training-view pixels (CPU, packed: :class:`toolkit.pixels.PackedViews`) and priors.
 
     Attributes:
-        scene: the training split.
-        images: float [V, 3, H, W] targets as stored (sRGB when ``scene.srgb``).
-        labels: uint8 [V, H, W] class ids (255 unlabelled) or None.
-        metal: bool [V, H, W] or None.
-        weights: float [V, H, W] DARS weight maps W.
+        scene: the training split (views may differ in size: ``scene.cameras.width/height``).
+        images: uint8 [P, 3] colour as stored (sRGB when ``scene.srgb``), quantised (read as float by ``gather``);
+            float16 for linear (HDR) scenes.
+        labels: uint8 [P] class ids (255 unlabelled) or None.
+        metal: bool [P] or None.
+        weights: float16 [P] DARS weight maps W in [0, 1] (rank-normalised per view unless
+            ``sampler.normalise == "none"``).
         distortion: float [V] L_distortion of each map.
-        albedo_gt: float [V, 3, H, W] linear ground-truth albedo (only with albedo supervision) or None.
+        albedo_gt: float16 [P, 3] linear ground-truth albedo (only with albedo supervision) or None.
         l_env_init: float [9, 3] initial light and where it came from.
         colour_init: ColourTransforms or None.
     """
 
     scene: Scene
-    images: torch.Tensor
-    labels: torch.Tensor | None
-    metal: torch.Tensor | None
-    weights: torch.Tensor
+    images: PackedViews
+    labels: PackedViews | None
+    metal: PackedViews | None
+    weights: PackedViews
     distortion: torch.Tensor
-    albedo_gt: torch.Tensor | None
+    albedo_gt: PackedViews | None
     l_env_init: torch.Tensor
     l_env_source: str
     colour_init: Any
     priors_used: dict
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the per-pixel buffers."""
+        return sum(b.nbytes for b in (self.images, self.labels, self.metal, self.weights, self.albedo_gt) if b is not None)
 
 
 def grey_ambient_sh(mean_linear: float) -> torch.Tensor:
@@ -53,69 +83,110 @@ def grey_ambient_sh(mean_linear: float) -> torch.Tensor:
     return sh
 
 
-def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | Path | None = None) -> TrainData:
-    """Load training images and priors (labels, metal mask, W maps, light, colour) for ``scene``.
+def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | Path | None = None,
+                 cache_dir: str | Path | None = None, with_images: bool = True) -> TrainData:
+    """Load training pixels and priors (labels, metal mask, W maps, light, colour) for ``scene``, one photo at a time.
 
     Priors come from the scene (provided labels and metal masks) or from the prior stages' outputs under
     ``priors_root/<stage>/`` (default ``<scene>/priors/<stage>/``; :func:`toolkit.priors.read_priors`); W maps are
     computed here when absent. Without any priors: uniform weights, no labels, SH initialised to a grey ambient —
     training still works.
-    """
-    from ..edges import WeightMapConfig, weight_map
 
-    images = scene.load_images()
-    V, _, H, W = images.shape
+    Args:
+        scene: the training split (views may differ in size).
+        cfg: the run's configuration (labels, semantics, sampler normalisation, colour correction, albedo supervision).
+        log: one-line progress messages.
+        priors_root: where the prior stages wrote their outputs (default: next to the scene).
+        cache_dir: keep the colour buffer in a memory-mapped file ``cache_dir/images.npy`` (created; a capture
+            larger than RAM), or None for RAM.
+        with_images: False: only what rendering needs (W maps, light); ``images`` is then an empty layout.
+    """
+    from ..edges import WeightMapConfig, quantile_normalise, weight_map
+
+    V = len(scene)
+    hs, ws = scene.cameras.height, scene.cameras.width
     source = {"ground-truth": "scene", "none": None}.get(cfg.labels, "segment")
     if source == "segment":  # predictions when the segmentation prior was run, else no labels
         seg = priors_path(scene, "segment", priors_root)
         if not all((seg / f"{f.key}.png").is_file() for f in scene.frames):
             source = "none"
-    pri = read_priors(scene, priors_root, labels=source if cfg.semantics else None, weights=cfg.semantics,
+    # labels feed L_semantic and W's edge term E (cfg.semantics: the semantic input) and L_mat's class terms
+    # (cfg.mat_labels); read them when either uses them
+    use_mat = cfg.mat_labels and cfg.losses.mat > 0 and cfg.shading == "pbr"
+    pri = read_priors(scene, priors_root, labels=source if (cfg.semantics or use_mat) else None, weights=cfg.semantics,
                       colour=cfg.colour_correction != "off",
                       metal={"ground-truth": "scene", "predicted": "segment"}.get(cfg.labels, "none"))
     labels, metal = pri.labels, pri.metal
     priors: dict = {"labels": pri.labels_source, "metal": pri.metal_source}
+    if labels is not None:
+        priors["labels_used_by"] = ", ".join(u for u, on in (("L_semantic", cfg.semantics), ("W (E)", cfg.semantics),
+                                                             ("L_mat", use_mat)) if on)
     if cfg.labels == "ground-truth":
         priors["ground_truth_inputs"] = "labels and metal masks (--labels ground-truth)"
-    if pri.weights is not None:
-        wm, dist = pri.weights, pri.distortion
-        priors["weights"] = pri.weights_source
+    w_labels = labels if cfg.semantics else None  # without the semantic input W has no label edges
+    if with_images:
+        path = None if cache_dir is None else Path(cache_dir) / "images.npy"
+        images = (PackedViews.allocate(hs, ws, 3, quantised=True, path=path) if scene.srgb
+                  else PackedViews.allocate(hs, ws, 3, dtype=torch.float16, path=path))
     else:
-        wcfg = WeightMapConfig()
-        maps_w, maps_d = [], []
-        for i in range(0, V, 16):
-            wm_i = weight_map(images[i:i + 16], None if labels is None else labels[i:i + 16].long(),
-                              None if metal is None else metal[i:i + 16], wcfg)
-            maps_w.append(wm_i.weights.float())
-            maps_d.append(wm_i.distortion_loss.float())
-        wm, dist = torch.cat(maps_w), torch.cat(maps_d)
-        priors["weights"] = "computed (G" + ("+E" if labels is not None else "") + ("+M" if metal is not None else "") + ")"
+        images = _layout_only(hs, ws)
+    computed = pri.weights is None
+    wm = pri.weights if not computed else PackedViews.allocate(hs, ws, dtype=torch.float16)
+    dist = pri.distortion if not computed else torch.zeros(V)
     albedo_gt = None
-    if cfg.albedo_supervision and scene.has_extra("albedo"):
-        albedo_gt = torch.stack([scene.load_extra(i, "albedo") for i in range(V)])
+    if cfg.albedo_supervision and scene.has_extra("albedo") and with_images:
+        albedo_gt = PackedViews.allocate(hs, ws, 3, dtype=torch.float16)
         priors["albedo_supervision"] = "ground truth"
+    need_light = pri.light is None
+    need_pixels = with_images or computed or need_light
+    wcfg = WeightMapConfig()
+    bg = torch.tensor(scene.background, dtype=torch.float32).view(3, 1, 1)
+    lin_sum, lin_n, all_sum, all_n = 0.0, 0, 0.0, 0
+    for i in range(V):
+        img = scene.load_image(i) if need_pixels else None  # float [3, H, W], the only full-precision copy
+        if with_images:
+            images.write(i, img.permute(1, 2, 0))
+        if computed:
+            lab = None if w_labels is None else w_labels.raw(i).long()[None]
+            met = None if metal is None else metal.raw(i)[None]
+            wm_i = weight_map(img[None], lab, met, wcfg)
+            wm.write(i, wm_i.weights[0])
+            dist[i] = float(wm_i.distortion_loss[0])
+        if albedo_gt is not None:
+            albedo_gt.write(i, scene.load_extra(i, "albedo").permute(1, 2, 0))
+        if need_light:  # the ambient level of the photos (of the object only, for RGBA photos on a known background)
+            lin = srgb_to_linear(img) if scene.srgb else img
+            all_sum, all_n = all_sum + float(lin.sum(dtype=torch.float64)), all_n + lin.numel()
+            if scene.background is not None:
+                obj = ((img - bg).abs().amax(0, keepdim=True) > 0.02).expand_as(lin)
+                lin_sum, lin_n = lin_sum + float(lin[obj].sum(dtype=torch.float64)), lin_n + int(obj.sum())
+        w = wm[i].clamp(0, 1)
+        if cfg.sampler.normalise == "quantile":
+            w = quantile_normalise(w[None])[0]
+        wm.write(i, w)
+    if computed:
+        priors["weights"] = "computed (G" + ("+E" if w_labels is not None else "") + ("+M" if metal is not None else "") + ")"
+    else:
+        priors["weights"] = pri.weights_source
     if pri.light is not None:
         l_env, l_src = pri.light, pri.light_source
     else:
-        lin = srgb_to_linear(images) if scene.srgb else images
-        fg = lin
-        if scene.background is not None:  # RGBA photos on a known background: the ambient level of the object only
-            bg = torch.tensor(scene.background, dtype=images.dtype).view(1, 3, 1, 1)
-            obj = ((images - bg).abs().amax(1, keepdim=True) > 0.02).expand_as(lin)
-            if bool(obj.any()):
-                fg = lin[obj]
-        l_env, l_src = grey_ambient_sh(float(fg.mean())), "grey ambient"
+        mean = lin_sum / lin_n if lin_n else all_sum / max(all_n, 1)
+        l_env, l_src = grey_ambient_sh(mean), "grey ambient"
     priors["light"] = l_src
     if pri.colour is not None:
         priors["colour"] = pri.colour_source
     elif cfg.colour_correction == "on":
         priors["colour"] = "identity (learned)"
     log("[dars] priors: " + ", ".join(f"{k}={v}" for k, v in priors.items()))
-    wm = wm.clamp(0, 1)
-    if cfg.sampler.normalise == "quantile":
-        from ..edges import quantile_normalise
-
-        wm = quantile_normalise(wm)
     return TrainData(scene=scene, images=images, labels=labels, metal=metal, weights=wm, distortion=dist,
                      albedo_gt=albedo_gt, l_env_init=l_env, l_env_source=l_src, colour_init=pri.colour,
                      priors_used=priors)
+
+
+def _layout_only(heights: torch.Tensor, widths: torch.Tensor) -> PackedViews:
+    """The view sizes without pixels (``data`` empty)."""
+    h = torch.as_tensor(heights, dtype=torch.long)
+    w = torch.as_tensor(widths, dtype=torch.long)
+    return PackedViews(torch.zeros(0, 3, dtype=torch.uint8), h, w,
+                       torch.cat([torch.zeros(1, dtype=torch.long), torch.cumsum(h * w, 0)]))

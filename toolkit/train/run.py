@@ -20,6 +20,7 @@ from .._checks import DarsError
 from ..cameras import Cameras
 from ..field import DarsField
 from ..pipeline import Background, RenderConfig, RenderedImage, RenderInputs, render_dars_context, render_image
+from ..pixels import PackedViews
 from ..priors import priors_path
 from ..sampling import OccupancyGrid
 from ..scene import Scene, load_scene
@@ -40,7 +41,8 @@ class Run:
         scene_path, split: the scene and split it trained on.
         field, background, l_env, occupancy: the trained state (l_env: float [9, 3] SH light).
         train_scene: the training split (its box, near/far and cameras are the run's).
-        weight_maps: float [V, H, W] W maps of the training views (DARS at render time), or None.
+        weight_maps: W maps of the training views, packed (:class:`toolkit.pixels.PackedViews`, float16; ``[i]`` gives
+            view i as float [H, W]) for DARS at render time, or None.
         step, elapsed: training steps and seconds done.
         meta: ``config.json`` as a dict (priors used, initial light, ...).
     """
@@ -54,7 +56,7 @@ class Run:
     l_env: torch.Tensor
     occupancy: OccupancyGrid
     train_scene: Scene
-    weight_maps: torch.Tensor | None
+    weight_maps: PackedViews | None
     step: int
     elapsed: float
     meta: dict
@@ -64,6 +66,15 @@ class Run:
         if not self.cfg.render_sampler.dars or self.weight_maps is None:
             return None
         return render_dars_context(self.train_scene.cameras, self.weight_maps, c2w, self.cfg.render_sampler.n_neighbours)
+
+    @property
+    def downscale(self) -> int:
+        """The factor the run's photos were shrunk by (``dars train --downscale``; 1 for runs written before it)."""
+        return int(self.meta.get("downscale", 1))
+
+    def load_split(self, split: str) -> Scene:
+        """Split ``split`` of the run's scene at the run's image size (its ``downscale``)."""
+        return load_scene(self.scene_path, split, downscale=self.downscale)
 
     def priors_dir(self, stage: str) -> Path:
         """Where this run read (or would have read) the ``stage`` prior: ``--priors DIR`` if training had one."""
@@ -107,7 +118,7 @@ def load_run(run_dir: str | Path, checkpoint: str | Path | None = None, device: 
     meta, ck_path = find_run(run_dir, checkpoint)
     cfg = read_run_config(meta, cfg_path)
     ck = read_checkpoint(ck_path, map_location=device, run_dir=run_dir)
-    scene = load_scene(meta["scene"], meta.get("split", "train"))
+    scene = load_scene(meta["scene"], meta.get("split", "train"), downscale=int(meta.get("downscale", 1)))
     if cfg.scene_box is not None:  # the box the run was trained with (fitted to the data when the file has none)
         scene = replace(scene, aabb=torch.tensor(cfg.scene_box, dtype=torch.float32))
     fld = DarsField(cfg.field, scene.aabb).to(device)
@@ -123,7 +134,8 @@ def load_run(run_dir: str | Path, checkpoint: str | Path | None = None, device: 
     wm = None
     if with_weights and cfg.render_sampler.dars:
         data_cfg = replace(cfg, albedo_supervision=False)
-        wm = prepare_data(scene, data_cfg, log=lambda m: None, priors_root=meta.get("priors_root")).weights
+        wm = prepare_data(scene, data_cfg, log=lambda m: None, priors_root=meta.get("priors_root"),
+                          with_images=False).weights
     return Run(path=run_dir, cfg=cfg, scene_path=meta["scene"], split=meta.get("split", "train"), field=fld,
                background=bg.to(device), l_env=ck["l_env"].to(device),
                occupancy=occupancy, train_scene=scene,

@@ -17,6 +17,7 @@ from ..io import linear_to_srgb, srgb_to_linear
 from ..losses import (compactness_loss, light_residual_loss, material_loss, normal_consistency_loss, orientation_loss, psnr_loss, rgb_l1,
                       semantic_loss, ssim_loss)
 from ..pipeline import Background, DarsContext, RenderConfig, RenderInputs, render_rays
+from ..pixels import PackedViews
 from ..sampling import OccupancyGrid, build_ray_sampler, neighbour_views, select_rays
 from ..scene import Scene, generate_rays
 from .config import SHELL_FADE, TrainConfig, photos_have_transparency
@@ -64,16 +65,20 @@ def _device(cfg: TrainConfig) -> torch.device:
     return torch.device(cfg.device)
 
 
-def _border_colour(images: torch.Tensor, srgb: bool) -> tuple[float, float, float]:
+def _border_colour(images: PackedViews, srgb: bool) -> tuple[float, float, float]:
     """Median colour (linear) of the outermost pixel ring of all training images: the background a learned
     background model starts from (starting it wrong lets the optimiser hide it behind a shell of density)."""
-    ring = torch.cat([images[:, :, 0, :], images[:, :, -1, :], images[:, :, :, 0], images[:, :, :, -1]], -1)
-    med = ring.permute(1, 0, 2).reshape(3, -1).median(-1).values
+    rings = []
+    for i in range(len(images)):
+        x = images.raw(i)  # [H, W, 3] as stored
+        rings += [x[0], x[-1], x[:, 0], x[:, -1]]
+    ring = torch.cat(rings).float()
+    med = ring.median(0).values / (255.0 if images.quantised else 1.0)
     lin = srgb_to_linear(med) if srgb else med
     return tuple(float(c) for c in lin.clamp(0.0, 1.0))
 
 
-def _background_for(scene: Scene, cfg: TrainConfig, images: torch.Tensor | None = None) -> Background:
+def _background_for(scene: Scene, cfg: TrainConfig, images: PackedViews | None = None) -> Background:
     mode = cfg.background
     if mode == "auto":
         mode = "constant" if cfg.scene_type == "object" and photos_have_transparency(scene) else "env"
@@ -119,12 +124,11 @@ def init_state(cfg: TrainConfig, data: TrainData) -> TrainState:
     light_opt = torch.optim.Adam([l_env], lr=cfg.lr_light, betas=(0.9, 0.99))
     for g in light_opt.param_groups:
         g["initial_lr"] = g["lr"]
-    V, H, W = data.weights.shape
     extent = float((scene.aabb[1] - scene.aabb[0]).norm())
     occ = OccupancyGrid(scene.aabb, cfg.occupancy_resolution, step=extent / 1024.0, contraction=cfg.field.contraction,
                         far_radius=cfg.field.far_radius).to(dev)
     occ.explore = cfg.occupancy_explore
-    ray_sampler = build_ray_sampler(data.weights if cfg.sampler.dars else None, (V, H, W), cfg.sampler.rho)
+    ray_sampler = build_ray_sampler(data.weights if cfg.sampler.dars else None, data.weights, cfg.sampler.rho)
     nb = neighbour_views(scene.cameras, cfg.sampler.n_neighbours)
     dars = DarsContext(scene.cameras.to(dev), data.weights.to(dev), nb.to(dev))
     return TrainState(cfg=cfg, field=fld, background=bg, l_env=l_env, colour=colour, optimizer=opt,
@@ -181,37 +185,40 @@ class Batch:
 
 
 def sample_batch(state: TrainState, data: TrainData) -> Batch:
+    """A batch of training rays: ``batch_rays`` pixels drawn by the ray sampler (the last ``ssim_patches`` x s x s
+    of them as s x s patches around drawn pixels), their targets converted from the packed buffers to float here."""
     cfg = state.cfg
     gen = state.generator
-    V, _, H, W = data.images.shape
+    lay = data.weights  # the views' sizes
     s = cfg.ssim_patch_size
-    P = cfg.ssim_patches if (cfg.losses.ssim > 0 and H > s and W > s) else 0
+    fits = int(lay.heights.min()) > s and int(lay.widths.min()) > s
+    P = cfg.ssim_patches if (cfg.losses.ssim > 0 and fits) else 0
     n_rand = cfg.batch_rays - P * s * s
     idx, iw = select_rays(state.ray_sampler, n_rand, gen)
-    views, rem = idx // (H * W), idx % (H * W)
-    rows, cols = rem // W, rem % W
+    views, rows, cols = lay.locate(idx)
     patch_iw = None
     if P:
         pidx, patch_iw = select_rays(state.ray_sampler, P, gen)
-        pv, prem = pidx // (H * W), pidx % (H * W)
-        pr = (prem // W - s // 2).clamp(0, H - s)
-        pc = (prem % W - s // 2).clamp(0, W - s)
+        pv, prow, pcol = lay.locate(pidx)
+        pr = torch.minimum((prow - s // 2).clamp_min(0), lay.heights[pv] - s)
+        pc = torch.minimum((pcol - s // 2).clamp_min(0), lay.widths[pv] - s)
         dr, dc = torch.meshgrid(torch.arange(s), torch.arange(s), indexing="ij")
         views = torch.cat([views, pv.repeat_interleave(s * s)])
         rows = torch.cat([rows, (pr[:, None] + dr.reshape(1, -1)).reshape(-1)])
         cols = torch.cat([cols, (pc[:, None] + dc.reshape(1, -1)).reshape(-1)])
         iw = torch.cat([iw, patch_iw.repeat_interleave(s * s)])
+    flat = lay.flat_index(views, rows, cols)
     dev = state.device
     cams = state.dars.cameras
     scene = data.scene
     bounds = state.field.space if state.cfg.field.contraction else scene.aabb.to(dev)
     rays = generate_rays(cams, views.to(dev), pixels=torch.stack([cols, rows], -1).to(dev),
                          aabb=bounds, near=scene.near, far=scene.far)
-    target = data.images[views, :, rows, cols].to(dev)
-    labels = data.labels[views, rows, cols].long().to(dev) if data.labels is not None else None
-    metal = data.metal[views, rows, cols].to(dev) if data.metal is not None else None
-    albedo_gt = data.albedo_gt[views, :, rows, cols].to(dev) if data.albedo_gt is not None else None
-    wray = data.weights[views, rows, cols].to(dev)
+    target = data.images.gather(flat).to(dev)
+    labels = data.labels.gather(flat).long().to(dev) if data.labels is not None else None
+    metal = data.metal.gather(flat).to(dev) if data.metal is not None else None
+    albedo_gt = data.albedo_gt.gather(flat).to(dev) if data.albedo_gt is not None else None
+    wray = data.weights.gather(flat).to(dev)
     return Batch(rays, target, iw.to(dev), views.to(dev), labels, metal, wray, albedo_gt, n_rand,
                  None if patch_iw is None else patch_iw.to(dev))
 
@@ -266,7 +273,8 @@ def train_step(state: TrainState, data: TrainData) -> dict:
         tp = batch.target[batch.n_random:].reshape(P, s, s, 3).permute(0, 3, 1, 2)
         terms["ssim"] = ssim_loss(pp, tp, batch.patch_iw)
     if cfg.shading == "pbr" and lw.mat > 0:
-        terms["mat"] = material_loss(out.albedo, out.roughness, out.metallic, batch.labels, batch.metal,
+        terms["mat"] = material_loss(out.albedo, out.roughness, out.metallic,
+                                     batch.labels if cfg.mat_labels else None, batch.metal,
                                      batch.albedo_gt, batch.iw)
     if stage_b:
         terms["psnr_loss"] = psnr_loss(pred, batch.target, batch.iw)
