@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from .._checks import ConfigError
+from .._checks import ConfigError, DarsError
 from ..io import save_torch, write_json
 from ..sampling import OccupancyGrid
 from ..scene import load_scene
