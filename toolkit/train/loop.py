@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from .._checks import ConfigError
+from .._checks import ConfigError, DarsError
 from ..distributed import current as current_distributed
 from ..distributed import peak_rss_mb
 from ..io import save_torch, write_json
