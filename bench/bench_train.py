@@ -291,7 +291,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--case", default="all", choices=["all", "sample", "lego", "tiny", "throughput", "galleries"])
     ap.add_argument("--galleries", default="all",
-                    help="galleries case: 'all' validation galleries, or the first N (a quick look; report all)")
+                    help="galleries case: 'all' validation galleries, the first N (a quick look; report all), or "
+                         "validation seeds, comma-separated (e.g. 1000001,)")
     ap.add_argument("--minutes", type=float, default=10.0, help="galleries case: training budget per gallery")
     ap.add_argument("--steps", type=int, default=0, help="galleries case: a step budget instead of --minutes")
     ap.add_argument("--seed", type=int, default=0, help="galleries case: training seed")
@@ -338,7 +339,15 @@ def main() -> int:
             sys.path.insert(0, str(ROOT / "samples"))
             from galleries import VALIDATION_SEEDS
 
-            seeds = list(VALIDATION_SEEDS) if args.galleries == "all" else list(VALIDATION_SEEDS)[:int(args.galleries)]
+            if args.galleries == "all":
+                seeds = list(VALIDATION_SEEDS)
+            elif "," in args.galleries or int(args.galleries) in VALIDATION_SEEDS:
+                seeds = [int(v) for v in args.galleries.split(",") if v]
+                bad = [v for v in seeds if v not in VALIDATION_SEEDS]
+                if bad:
+                    ap.error(f"--galleries {args.galleries}: {bad} are not validation seeds ({list(VALIDATION_SEEDS)})")
+            else:
+                seeds = list(VALIDATION_SEEDS)[:int(args.galleries)]
             results[c] = case_galleries(seeds, args.minutes, args.steps, args.threads, out, args.seed,
                                         args.train_args.split())
         elif c == "throughput":
