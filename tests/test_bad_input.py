@@ -419,6 +419,10 @@ CASES += [
     Case("priors-folder-is-a-stage", lambda c: ["train", c.w.scene, "--priors", c.t / "P" / "light", "--out",
                                                 c.t / O, "--steps", 1], ("light", "parent"),
          _priors("light", "light.json", '{"coeffs": []}')),
+    Case("train-many-manifest-not-json", lambda c: ["train-many", c.t / "museum.json", "--out", c.t / O],
+         ("museum.json", "not valid JSON"), _write("museum.json", "{\n")),
+    Case("train-many-entry-without-scene", lambda c: ["train-many", c.t / "museum.json", "--out", c.t / O],
+         ("entry 1", "'scene'", "'photos'"), _write("museum.json", '[{"name": "hall"}]')),
     Case("ablate-priors-missing", lambda c: ["ablate", c.w.scene, "--priors", c.t / "nope", "--out", c.t / O,
                                              "--steps", 1], ("nope", "not found")),
 ]
@@ -487,6 +491,8 @@ _ARGS = [
     ("infer-camera-spec", lambda c: ["infer", c.w.onnx, "--camera", "scene-0", "--out", c.t / "v.png"],
      ("--camera", "SCENE:SPLIT:INDEX")),
     ("unknown-command", lambda c: ["trian", c.w.scene], ("trian",)),
+    ("train-many-manifest-missing", lambda c: ["train-many", c.t / "museum.json", "--out", c.t / O],
+     ("museum.json", "not found")),
 ]
 CASES += [Case(f"arg-{name}", argv, words) for name, argv, words in _ARGS]
 
@@ -617,10 +623,9 @@ def test_first_checkpoint_comes_early(world, tmp_path, monkeypatch):
     from toolkit.train import train
 
     saved = []
-    real = loop.save_checkpoint
+    real = loop.save_torch
     monkeypatch.setattr(folder, "FIRST_CHECKPOINT_STEPS", 2)
-    monkeypatch.setattr(loop, "save_checkpoint", lambda state, path: (saved.append((state.step, path.name)),
-                                                                      real(state, path)))
+    monkeypatch.setattr(loop, "save_torch", lambda path, ck: (saved.append((ck["step"], path.name)), real(path, ck)))
     train(world.scene, tmp_path / "r", tiny_config(steps=4, checkpoint_every=1000), progress_bar=False,
           log=lambda m: None)
     assert saved == [(2, "checkpoint.pt"), (4, "checkpoint.pt")]

@@ -75,7 +75,7 @@ VARIANT_REMOVES: dict[str, str] = {
 ``TrainConfig.mat_labels``). Runs made before ``no_semantics`` and L_mat's class terms were separate switches are
 named ``no_semantics_legacy`` by :func:`toolkit.evaluate.variant_of` and are not reused for ``no_semantics``."""
 
-STAT_KEYS = ("psnr", "ssim", "albedo_mae", "roughness_rmse", "normal_mae", "miou")
+from .report import STAT_KEYS  # noqa: E402  (one table of the metrics that get seed statistics, shared with the report)
 """Metrics whose per-seed figures, mean ± std and paired differences the report tabulates (``ablation.json`` has
 them for every metric)."""
 

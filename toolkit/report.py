@@ -30,6 +30,9 @@ import numpy as np
 
 from .io import atomic_write, write_json
 
+STAT_KEYS = ("psnr", "ssim", "albedo_mae", "roughness_rmse", "normal_mae", "miou")
+"""Metrics that ablations give per-seed statistics and paired differences for (:mod:`toolkit.ablation`)."""
+
 __all__ = ["HEADLINE", "EXTRA_COLUMNS", "ABLATION_COLUMNS", "format_metric", "headline_markdown", "headline_text",
            "ablation_text", "text_table", "plot_training_curves",
            "write_eval_report", "write_ablation_report"]
@@ -516,7 +519,6 @@ def _signed(x, fmt: str) -> str:
 
 
 def _ablation_markdown(doc: dict, written: dict, out: Path) -> str:
-    from .ablation import STAT_KEYS
 
     b = doc["budget"]
     seeds = doc.get("seeds") or [doc["seed"]]
@@ -600,7 +602,6 @@ def _ablation_markdown(doc: dict, written: dict, out: Path) -> str:
 
 def _seed_sections(doc: dict, multi: bool) -> list[str]:
     """Per-seed figures, paired differences against ``full`` and the seed-noise sentences."""
-    from .ablation import STAT_KEYS
 
     cols = [_COLUMNS[k] for k in STAT_KEYS]
     L = ["## Per seed", ""]
