@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 ABLATION_FILES = ("ablation.json", "ablation.md", "ablation_brightness.png", "ablation_weights.png")
 """What :func:`run_ablation` writes beside the variants' run folders."""
 
-__all__ = ["ABLATION_FILES", "VARIANTS", "VARIANT_LABELS", "VARIANT_REMOVES", "STAT_KEYS", "VariantResult",
+__all__ = ["ABLATION_FILES", "VARIANTS", "VARIANT_LABELS", "VARIANT_REMOVES", "VariantResult",
            "AblationResult", "run_ablation", "seed_statistics", "paired_differences", "parse_seeds"]
 
 VARIANTS: dict[str, dict] = {
@@ -75,7 +75,6 @@ VARIANT_REMOVES: dict[str, str] = {
 ``TrainConfig.mat_labels``). Runs made before ``no_semantics`` and L_mat's class terms were separate switches are
 named ``no_semantics_legacy`` by :func:`toolkit.evaluate.variant_of` and are not reused for ``no_semantics``."""
 
-from .report import STAT_KEYS  # noqa: E402  (one table of the metrics that get seed statistics, shared with the report)
 """Metrics whose per-seed figures, mean ± std and paired differences the report tabulates (``ablation.json`` has
 them for every metric)."""
 
@@ -204,7 +203,7 @@ class AblationResult:
         Per variant: ``runs`` (one entry per seed: its metrics, training facts, inputs, difference to ``full`` with the
         same seed), ``per_seed`` (metric -> values in seed order), ``summary`` (metric -> :func:`seed_statistics`),
         ``paired_vs_full`` (metric -> :func:`paired_differences` against ``full``; absent without ``full``),
-        ``within_seed_noise`` (the :data:`STAT_KEYS` whose ``|mean paired difference| < std``), ``noise_note`` (that
+        ``within_seed_noise`` (the :data:`toolkit.report.STAT_KEYS` whose ``|mean paired difference| < std``), ``noise_note`` (that
         as a sentence). ``metrics`` and ``delta_vs_full`` are the means over seeds (with one seed: that run's values);
         ``run``, ``training``, ``view_consistency_curve``, ``sampling`` and ``eval_report`` are the first seed's.
         """
@@ -231,7 +230,7 @@ class AblationResult:
             for r in run_docs:
                 for k, why in r["unavailable"].items():
                     unavailable.setdefault(k, why)
-            noisy = [] if paired is None or name == "full" else [k for k in STAT_KEYS if paired[k]["within_seed_noise"]]
+            noisy = [] if paired is None or name == "full" else [k for k in _stat_keys() if paired[k]["within_seed_noise"]]
             items.append({
                 "name": name, "label": VARIANT_LABELS.get(name, name), "removes": VARIANT_REMOVES.get(name, ""),
                 "seeds": seeds, "run": first["run"], "reused": all(r["reused"] for r in run_docs),
@@ -252,7 +251,7 @@ class AblationResult:
                 "seed": self.seed, "seeds": list(self.seeds), "split": self.split,
                 "layout": "OUT/<variant>/" if len(self.seeds) == 1 else "OUT/<variant>/seed_<s>/",
                 "overrides": {k: str(v) for k, v in self.overrides.items()},
-                "metric_keys": list(METRIC_KEYS), "stat_keys": list(STAT_KEYS),
+                "metric_keys": list(METRIC_KEYS), "stat_keys": list(_stat_keys()),
                 "statistics": "mean ± sample standard deviation (n − 1) over seeds; paired differences are variant − "
                               "full with the same seed",
                 "inputs": _inputs_summary(items), "variants": items}
@@ -263,10 +262,18 @@ WALL_CLOCK_WARNING = ("wall-clock budget: every run trained the same minutes, so
                       "and the machine's load. Compare at equal steps (--steps N).")
 
 
+def _stat_keys() -> tuple[str, ...]:
+    """The metrics that get seed statistics (:data:`toolkit.report.STAT_KEYS`; imported here, not at module level,
+    so ``dars --help`` stays free of numpy)."""
+    from .report import STAT_KEYS
+
+    return STAT_KEYS
+
+
 def _noise_note(name: str, paired: dict | None, noisy: list[str]) -> str:
     if name == "full" or paired is None:
         return ""
-    n = max((paired[k]["n"] for k in STAT_KEYS), default=0)
+    n = max((paired[k]["n"] for k in _stat_keys()), default=0)
     if n < 2:
         return "one seed: no estimate of seed noise, so no difference can be called significant or not."
     if not noisy:
