@@ -62,6 +62,20 @@ def opacity_level(voxel_size: float, opacity: float = 0.5) -> float:
     return -math.log1p(-opacity) / voxel_size
 
 
+def _training_rays(cameras, n_rays: int, seed: int, aabb):
+    """``n_rays`` rays through training pixels drawn uniformly over all pixels of all views (seeded), bounded by
+    ``aabb`` (a box tensor or a :class:`toolkit.space.SceneSpace`), on the CPU."""
+    from ..cameras import generate_rays
+
+    cams = cameras.to("cpu")
+    g = torch.Generator().manual_seed(seed)
+    n_pix = (cams.height * cams.width).long()
+    view = torch.multinomial(n_pix.double(), n_rays, replacement=True, generator=g)
+    pix = (torch.rand(n_rays, generator=g, dtype=torch.float64) * n_pix[view]).long()
+    width = cams.width[view].long()
+    return generate_rays(cams, view, pixels=torch.stack([pix % width, pix // width], -1), aabb=aabb)
+
+
 def level_from_rays(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndarray, voxel_size: float,
                     quantile: float = 0.1, n_rays: int = 4096, samples: int = 256, seed: int = 0,
                     device: str = "cpu") -> tuple[float, dict]:
@@ -80,18 +94,10 @@ def level_from_rays(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndar
         (level σ* in 1/metre, report ``{"level", "cap", "quantile", "rays", "rays_opaque", "sigma_quantiles"}``).
         With no ray reaching half-transmittance the level is the cap.
     """
-    from ..cameras import generate_rays
-
     check_range(quantile, 1e-6, 1.0, "quantile")
     cap = opacity_level(voxel_size)
     box = torch.as_tensor(_check_aabb(aabb), dtype=torch.float32)
-    cams = cameras.to("cpu")
-    g = torch.Generator().manual_seed(seed)
-    n_pix = (cams.height * cams.width).long()
-    view = torch.multinomial(n_pix.double(), n_rays, replacement=True, generator=g)
-    pix = (torch.rand(n_rays, generator=g, dtype=torch.float64) * n_pix[view]).long()
-    width = cams.width[view].long()
-    rays = generate_rays(cams, view, pixels=torch.stack([pix % width, pix // width], -1), aabb=box)
+    rays = _training_rays(cameras, n_rays, seed, box)
     rays = rays[torch.nonzero(rays.far > rays.near).squeeze(-1)]
     sig_at = []
     for s in range(0, len(rays), 256):  # 256 rays x `samples` points per density query
@@ -136,17 +142,10 @@ def surface_region(density_fn: DensityFn, cameras, space, n_rays: int = 4096, sa
         (box float64 [2, 3] metres, report ``{"rays", "rays_opaque", "points_kept", "box"}``). Without any opaque
         ray the scene box itself.
     """
-    from ..cameras import generate_rays
     from ..space import box_radius, contracted_edges
 
-    cams = cameras.to("cpu")
-    g = torch.Generator().manual_seed(seed)
-    n_pix = (cams.height * cams.width).long()
-    view = torch.multinomial(n_pix.double(), n_rays, replacement=True, generator=g)
-    pix = (torch.rand(n_rays, generator=g, dtype=torch.float64) * n_pix[view]).long()
-    width = cams.width[view].long()
     sp = space.to("cpu")
-    rays = generate_rays(cams, view, pixels=torch.stack([pix % width, pix // width], -1), aabb=sp)
+    rays = _training_rays(cameras, n_rays, seed, sp)
     pts_all = []
     for s in range(0, len(rays), 256):
         r = rays[s:s + 256]
