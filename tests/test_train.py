@@ -295,4 +295,4 @@ def test_downscale_is_recorded_and_used_by_render_and_resume(tiny, tmp_path, cap
     except SystemExit as e:
         rc = e.code
     assert rc == 2
-    assert "--downscale: expected a positive integer, got '0'" in capsys.readouterr().err
+    assert "--downscale: must be ≥ 1, got 0" in capsys.readouterr().err

@@ -27,15 +27,6 @@ def set_threads(n: int) -> None:
         torch.set_num_threads(n)
 
 
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1 (``--downscale``)."""
-    try:
-        n = int(text)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return n
 def number(kind: type = float, min: float | None = None, max: float | None = None, above: float | None = None):
     """An argparse ``type=`` that accepts a finite number of ``kind`` (int or float) in range, else names the rule:
     ``dars train: error: argument --minutes: must be a finite number, got 'nan'``. Checked while parsing, before any

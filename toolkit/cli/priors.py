@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from .._checks import DarsError
-from ._common import COUNT, FINITE, NONNEGATIVE, POSITIVE, SCENE_HELP, positive_int, print_json
+from ._common import COUNT, FINITE, NONNEGATIVE, POSITIVE, SCENE_HELP, print_json
 
 _LM = ["(0,0)", "(1,-1)", "(1,0)", "(1,1)", "(2,-2)", "(2,-1)", "(2,0)", "(2,1)", "(2,2)"]
 """(l, m) of the 9 SH coefficients, SPEC order (table rows)."""
@@ -65,7 +65,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def _common(q: argparse.ArgumentParser, stage: str) -> None:
     q.add_argument("scene", help=SCENE_HELP)
     q.add_argument("--split", default="train", help="split to process (default: train)")
-    q.add_argument("--downscale", type=positive_int, default=1, metavar="N",
+    q.add_argument("--downscale", type=POSITIVE, default=1, metavar="N",
                    help="shrink the photos N times on load (default: 1; `dars train` reads maps made at another "
                         "--downscale, resized)")
     q.add_argument("--out", default=None, help=f"output directory (default: <scene>/priors/{stage})")

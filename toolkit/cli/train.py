@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from .._checks import DarsError
-from ._common import COUNT, FINITE, NONNEGATIVE, number, positive_int, set_threads
+from ._common import COUNT, FINITE, NONNEGATIVE, POSITIVE, number, set_threads
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -28,7 +28,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "into a non-empty folder beside its files (files dars did not write are never touched)")
     q.add_argument("--seed", type=COUNT, default=None, help="random seed (default: 0)")
     q.add_argument("--split", default=None, help="split to train on (default: train)")
-    q.add_argument("--downscale", type=positive_int, default=1, metavar="N",
+    q.add_argument("--downscale", type=POSITIVE, default=1, metavar="N",
                    help="shrink the photos N times on load (default: 1); memory and time fall with N^2. Recorded in "
                         "the run: render, relight, eval and --resume use the same size")
     q.add_argument("--priors", help="directory holding the prior stages' outputs (default: <scene>/priors)")
