@@ -293,7 +293,7 @@ def _write_colmap(tmp_path, model="PINHOLE", params="20 20 8 6"):
 
 def test_colmap_pinhole_and_conventions(tmp_path):
     root = _write_colmap(tmp_path)
-    sc = load_scene(root, "all")
+    sc = load_scene(root, "all", upright="off")  # the file's own frame (upright on load: test_upright_load.py)
     assert len(sc) == 2 and sc.image_size == (12, 16)
     assert float(sc.cameras.fx[0]) == 20 and float(sc.cameras.cx[0]) == 8
     # COLMAP camera looks down +z with y down; in OpenGL c2w it looks down -z: optical axis = -c2w[:, 2]

@@ -296,3 +296,51 @@ def test_downscale_is_recorded_and_used_by_render_and_resume(tiny, tmp_path, cap
         rc = e.code
     assert rc == 2
     assert "--downscale: must be ≥ 1, got 0" in capsys.readouterr().err
+
+
+def test_upright_is_recorded_and_used_by_load_run_and_resume(tiny, tmp_path, capsys, monkeypatch):
+    import shutil
+
+    import numpy as np
+
+    from toolkit.cli import main
+    from toolkit.sh import rotation_x
+
+    tilted = tmp_path / "tilted"  # the tiny scene turned 30 deg about x, without its box: made upright on load
+    shutil.copytree(tiny, tilted)
+    turn = np.eye(4)
+    turn[:3, :3] = rotation_x(30.0).numpy()
+    for split in ("train", "test"):
+        meta = json.loads((tilted / f"transforms_{split}.json").read_text())
+        del meta["aabb"]
+        for fr in meta["frames"]:
+            fr["transform_matrix"] = (turn @ np.asarray(fr["transform_matrix"])).tolist()
+        (tilted / f"transforms_{split}.json").write_text(json.dumps(meta))
+    file_c2w = load_scene(tilted, "train", upright="off").cameras.c2w
+    auto, off = tmp_path / "auto", tmp_path / "off"
+    train(tilted, auto, _small(steps=1), progress_bar=False, log=lambda m: None)
+    assert json.loads((auto / "config.json").read_text())["upright"] == "auto"
+    run = load_run(auto, with_weights=False)
+    assert run.train_scene.meta["upright"]["applied"] and run.load_split("test").meta["upright"]["applied"]
+    assert not torch.allclose(run.train_scene.cameras.c2w, file_c2w, atol=1e-3)
+    with pytest.raises(DarsError, match="made upright on load, not with --no-upright"):
+        train(tilted, auto, _small(steps=2), resume=True, progress_bar=False, log=lambda m: None, upright="off")
+    # a run folder written before upright-on-load (no key) trained in the file's frame and loads in it
+    meta = json.loads((auto / "config.json").read_text())
+    del meta["upright"]
+    (auto / "config.json").write_text(json.dumps(meta))
+    assert torch.equal(load_run(auto, with_weights=False).train_scene.cameras.c2w, file_c2w)
+    seen = []  # `dars train --no-upright` is train(..., upright="off")
+    monkeypatch.setattr("toolkit.train.train", lambda *a, **kw: seen.append(kw["upright"]) or off / "checkpoint.pt")
+    for flag in ([], ["--no-upright"]):
+        assert main(["train", str(tilted), "--out", str(off), "--steps", "1", "--quiet", *flag]) == 0
+    assert seen == ["auto", "off"]
+    monkeypatch.undo()
+    capsys.readouterr()
+    train(tilted, off, _small(steps=1), progress_bar=False, log=lambda m: None, upright="off")
+    assert json.loads((off / "config.json").read_text())["upright"] == "off"
+    train(tilted, off, _small(steps=2), resume=True, progress_bar=False, log=lambda m: None)
+    assert json.loads((off / "config.json").read_text())["upright"] == "off"
+    run = load_run(off, with_weights=False)
+    assert run.step == 2 and torch.equal(run.train_scene.cameras.c2w, file_c2w)
+    assert run.load_split("test").meta["upright"]["kept"] == "upright='off'"

@@ -17,6 +17,13 @@ coordinates that ``cx, cy`` use, so the camera-space ray through it is
 ``((u + 0.5 − cx) / fx, −(v + 0.5 − cy) / fy, −1)``. Images are float in [0, 1] as stored (sRGB for
 PNG/JPEG photos; :attr:`Scene.srgb` says so). Images are decoded lazily, one file at a time: memory is what
 the caller asks for (:meth:`Scene.load_image`, :meth:`Scene.load_images`), never the whole data set.
+
+Upright on load: a COLMAP model's world frame is arbitrary (often y down), and a transforms JSON from another tool
+need not be +z up. For a COLMAP model, and for a transforms JSON that has no ``aabb`` and was not written by
+``dars poses`` (no ``dars_transform`` key), :func:`load_scene` estimates world up from the cameras of every split
+(and COLMAP's sparse points; :func:`toolkit.upright.plan_upright_rotation`) and, when the tilt exceeds
+:data:`toolkit.upright.LOAD_TILT_TOLERANCE_DEG`, rotates the world so that up is +z (rotation only: centre and scale
+stay). ``scene.meta["upright"]`` records what was done; ``upright="off"`` keeps the input's frame.
 """
 
 from __future__ import annotations
@@ -127,7 +134,12 @@ class Scene:
         downscale: integer factor images are reduced by on load.
         srgb: whether stored images are sRGB-encoded (PNG/JPEG photos) rather than linear.
         depth_unit_scale_factor: PNG depth value x factor = metres.
-        meta: other top-level values of the source file (e.g. ``render``, ``scene`` blocks).
+        meta: other top-level values of the source file (e.g. ``render``, ``scene`` blocks). ``meta["upright"]``
+            (COLMAP and transforms inputs): ``rotation`` (float [3, 3] lists, ``x_loaded = rotation @ x_file``; the
+            identity when nothing was rotated), ``tilt_deg``, ``source`` (``cameras`` / ``cameras+plane``, None when
+            not estimated), ``applied`` and, when the frame was kept without estimating, ``kept`` (why). When applied,
+            cameras, the box, :attr:`sh`, ``meta["sh"]``/``meta["sh_env"]`` and normal maps (on load) are in the
+            rotated frame; other world-space values of the file (``envmap_path``'s map, ``scene`` blocks) are not.
     """
 
     source: Path
@@ -329,6 +341,8 @@ class Scene:
             n = img * 2.0 - 1.0
             n = n / np.clip(np.linalg.norm(n, axis=-1, keepdims=True), 1e-6, None)
             img = np.where(valid, n, 0.0).astype(np.float32)
+        if name == "normal" and self.meta.get("upright", {}).get("applied"):  # world-space: into the upright frame
+            img = (img @ np.asarray(self.meta["upright"]["rotation"], np.float32).T).astype(np.float32)
         return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))
 
 
@@ -381,6 +395,7 @@ def load_scene(
     n_train: int = 100,
     aabb: Sequence[Sequence[float]] | None = None,
     distortion: Literal["undistort", "reject"] = "undistort",
+    upright: Literal["auto", "off"] = "auto",
 ) -> Scene:
     """Load one split of a scene (lazily: only headers are read here).
 
@@ -395,6 +410,10 @@ def load_scene(
         aabb: override the scene bounds ``[[xmin, ymin, zmin], [xmax, ymax, zmax]]`` (metres).
         distortion: images with radial/tangential distortion are undistorted on load (``undistort``) or
             refused (``reject``). Fisheye models are always refused.
+        upright: ``auto``: a COLMAP model, or a transforms JSON without ``aabb`` that ``dars poses`` did not write,
+            is rotated so that its estimated world up is +z when it is tilted by more than
+            :data:`toolkit.upright.LOAD_TILT_TOLERANCE_DEG` (the same rotation for every split; see the module
+            docstring and ``meta["upright"]``). ``off``: keep the input's frame. ``aabb`` is in the loaded frame.
 
     Raises:
         SceneError: naming the file, frame and value for missing/corrupt images, missing, non-finite or
@@ -407,6 +426,8 @@ def load_scene(
         raise SceneError(f"unknown split '{split}': choose train, val, test or all")
     if not isinstance(downscale, int) or downscale < 1:
         raise SceneError(f"downscale must be a positive integer, got {downscale!r}")
+    if upright not in ("auto", "off"):
+        raise SceneError(f"upright must be 'auto' or 'off', got {upright!r}")
     bg = tuple(float(c) for c in background)
     if len(bg) != 3 or not all(0.0 <= c <= 1.0 for c in bg):
         raise SceneError(f"background must be 3 values in [0, 1], got {list(background)}")
@@ -415,23 +436,24 @@ def load_scene(
     elif path.is_file() and path.suffix.lower() in _PHOTO_SUFFIXES:
         raise _not_a_scene(path, f"{path}: not a scene directory, transforms JSON or tiny-NeRF .npz")
     elif path.is_file():
-        scene = _load_transforms(path, split, test_every, bg, downscale, distortion, single=True)
+        scene = _load_transforms(path, split, test_every, bg, downscale, distortion, upright, single=True)
     elif any((path / f"transforms_{s}.json").is_file() for s in ("train", "val", "test")):
         file = path / f"transforms_{split}.json"
         if split == "all":
-            parts = [load_scene(path, s, downscale, bg, test_every, n_train, aabb, distortion)
+            parts = [load_scene(path, s, downscale, bg, test_every, n_train, aabb, distortion, upright)
                      for s in list_splits(path)]
             return _concat(parts)
         if not file.is_file():
             avail = [s for s in ("train", "val", "test") if (path / f"transforms_{s}.json").is_file()]
             raise SceneError(f"{path}: split '{split}' not found (no {file.name}); available splits: {avail}")
         siblings = [path / f"transforms_{s}.json" for s in ("train", "val", "test")]
-        scene = _load_transforms(file, split, test_every, bg, downscale, distortion, single=False,
+        scene = _load_transforms(file, split, test_every, bg, downscale, distortion, upright, single=False,
                                  bounds_files=[f for f in siblings if f.is_file()])
     elif (path / "transforms.json").is_file():
-        scene = _load_transforms(path / "transforms.json", split, test_every, bg, downscale, distortion, single=True)
+        scene = _load_transforms(path / "transforms.json", split, test_every, bg, downscale, distortion, upright,
+                                 single=True)
     elif _find_colmap(path) is not None:
-        scene = _load_colmap(path, split, test_every, bg, downscale, distortion)
+        scene = _load_colmap(path, split, test_every, bg, downscale, distortion, upright)
     else:
         raise _not_a_scene(path, f"{path}: no transforms_*.json, transforms.json, COLMAP model (cameras.txt + "
                                  "images.txt) or .npz found")
@@ -536,14 +558,16 @@ def _read_transforms(file: Path) -> dict:
     return meta
 
 
-def _all_poses_for_bounds(files: list[Path]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Poses, focal lengths and widths of every frame of every split (the scene box must not depend on the split).
+def _all_poses_for_bounds(files: list[Path]) -> tuple[np.ndarray, np.ndarray, np.ndarray, set[str]]:
+    """Poses, focal lengths and widths of every frame of every split (the scene box and the upright rotation must
+    not depend on the split), and the top-level keys of the files.
 
     Unparseable poses are skipped here; the split that holds them reports them when it is loaded.
     """
-    c2ws, fxs, ws = [], [], []
+    c2ws, fxs, ws, keys = [], [], [], set()
     for f in files:
         meta = _read_transforms(f)
+        keys.update(meta)
         for fm in meta["frames"]:
             try:
                 m = np.asarray(fm["transform_matrix"], dtype=np.float64)
@@ -563,10 +587,39 @@ def _all_poses_for_bounds(files: list[Path]) -> tuple[np.ndarray, np.ndarray, np
             except (AttributeError, TypeError, ValueError, ZeroDivisionError):
                 continue  # reported when its split is loaded
             c2ws.append(m); fxs.append(fx); ws.append(w)  # noqa: E702
-    return np.stack(c2ws) if c2ws else np.zeros((0, 4, 4)), np.array(fxs), np.array(ws)
+    return np.stack(c2ws) if c2ws else np.zeros((0, 4, 4)), np.array(fxs), np.array(ws), keys
 
 
-def _load_transforms(file: Path, split: str, test_every: int, bg, downscale: int, distortion: str,
+def _plan_upright(upright: str, c2w_all: np.ndarray, points: np.ndarray | None = None,
+                  kept: str | None = None) -> dict:
+    """``meta["upright"]`` of a loaded scene: :func:`toolkit.upright.plan_upright_rotation` on every frame's pose (and
+    the sparse points), or a not-applied record saying why the input's frame is kept without estimating."""
+    if upright == "off" or kept is not None or len(c2w_all) == 0:
+        return {"rotation": np.eye(3).tolist(), "tilt_deg": None, "source": None, "applied": False,
+                "kept": "upright='off'" if upright == "off" else kept or "no valid poses"}
+    from .upright import plan_upright_rotation
+
+    return plan_upright_rotation(c2w_all, points)
+
+
+def _rotate_world(c2w: np.ndarray, record: dict) -> np.ndarray:
+    """float [N, 4, 4] camera-to-world matrices in the upright frame of ``record`` (``c2w`` itself when not applied)."""
+    if not record["applied"]:
+        return c2w
+    T = np.eye(4)
+    T[:3, :3] = record["rotation"]
+    return T @ c2w
+
+
+def _rotate_sh_coeffs(coeffs, record: dict) -> torch.Tensor:
+    """float [9, 3] SH coefficients (SPEC convention) in the upright frame of an applied ``record``."""
+    from .sh import rotate_sh
+
+    c = torch.as_tensor(np.asarray(coeffs, dtype=np.float64).reshape(9, 3))
+    return rotate_sh(c, np.asarray(record["rotation"], np.float64))
+
+
+def _load_transforms(file: Path, split: str, test_every: int, bg, downscale: int, distortion: str, upright: str,
                      single: bool, bounds_files: list[Path] | None = None) -> Scene:
     meta = _read_transforms(file)
     frames_meta = meta["frames"]
@@ -640,13 +693,23 @@ def _load_transforms(file: Path, split: str, test_every: int, bg, downscale: int
         frames.append(Frame(name=str(fm["file_path"]), image_path=img_path, extras=extras,
                             distortion=coeffs if has_dist else None, native_size=(w, h)))
     c2w = np.stack(c2ws) if c2ws else np.zeros((0, 4, 4))
-    all_c2w, all_fx, all_w = _all_poses_for_bounds(bounds_files or [file])
+    all_c2w, all_fx, all_w, keys = _all_poses_for_bounds(bounds_files or [file])
+    kept = ("the file has an 'aabb' (its frame is the box's)" if "aabb" in keys
+            else "written by dars poses (already upright)" if "dars_transform" in keys else None)
+    record = _plan_upright(upright, all_c2w, kept=kept)
+    c2w, all_c2w = _rotate_world(c2w, record), _rotate_world(all_c2w, record)
     box = _scene_aabb(all_c2w, all_fx, all_w, meta) if len(all_c2w) else np.array([[-1.0] * 3, [1.0] * 3])
     sh = _read_sh(meta, base, file)
     envmap = base / meta["envmap"] if meta.get("envmap") else None
     cams = _make_cameras(c2w, fxs, fys, cxs, cys, ws, hs, downscale)
     extra_meta = {k: v for k, v in meta.items() if k != "frames"}
     extra_meta["aabb_source"] = "file" if "aabb" in meta else "cameras"
+    extra_meta["upright"] = record
+    if record["applied"]:
+        sh = None if sh is None else _rotate_sh_coeffs(sh, record).float()
+        for k in ("sh", "sh_env"):  # the ground-truth light as written in the file: 9 x [r, g, b]
+            if np.size(extra_meta.get(k)) == 27:
+                extra_meta[k] = _rotate_sh_coeffs(extra_meta[k], record).tolist()
     return Scene(source=file, split=split, cameras=cams, frames=tuple(frames), aabb=torch.tensor(box, dtype=torch.float32),
                  near=_opt_number(meta, "near", file), far=_opt_number(meta, "far", file), sh=sh, envmap_path=envmap,
                  background=bg, downscale=downscale, srgb=True,
@@ -770,7 +833,7 @@ def _qvec_to_rotmat(q: np.ndarray) -> np.ndarray:
         [2 * x * z - 2 * w * y, 2 * y * z + 2 * w * x, 1 - 2 * x * x - 2 * y * y]])
 
 
-def _load_colmap(path: Path, split: str, test_every: int, bg, downscale: int, distortion: str) -> Scene:
+def _load_colmap(path: Path, split: str, test_every: int, bg, downscale: int, distortion: str, upright: str) -> Scene:
     model = _find_colmap(path)
     cams_txt = model / "cameras.txt"
     cameras: dict[int, tuple[str, int, int, list[float]]] = {}
@@ -866,14 +929,23 @@ def _load_colmap(path: Path, split: str, test_every: int, bg, downscale: int, di
     c2w = np.stack(c2ws) if c2ws else np.zeros((0, 4, 4))
     meta: dict = {"format": "colmap", "model": str(model)}
     pts = model / "points3D.txt"
-    if pts.is_file():
-        xyz = [list(map(float, ln.split()[1:4])) for ln in pts.read_text().splitlines()
-               if ln.strip() and not ln.startswith("#")]
-        if len(xyz) >= 10:
-            arr = np.asarray(xyz)
-            lo, hi = np.percentile(arr, 1, axis=0), np.percentile(arr, 99, axis=0)
-            pad = 0.1 * (hi - lo)
-            meta["aabb"] = [(lo - pad).tolist(), (hi + pad).tolist()]
+    xyz, err = np.zeros((0, 3)), np.zeros(0)
+    if pts.is_file():  # POINT3D_ID X Y Z R G B ERROR TRACK[]
+        rows = [ln.split() for ln in pts.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+        xyz = np.array([[float(v) for v in r[1:4]] for r in rows]).reshape(-1, 3)
+        err = np.array([float(r[7]) if len(r) > 7 else 0.0 for r in rows])
+    good = np.isfinite(xyz).all(1) & (err < 4.0)  # px, as dars poses: badly triangulated points off the plane fit
+    record = _plan_upright(upright, np.stack(bounds_c2w) if bounds_c2w else np.zeros((0, 4, 4)),
+                           xyz[good] if good.sum() >= 3 else None)
+    meta["upright"] = record
+    if record["applied"]:
+        c2w = _rotate_world(c2w, record)
+        bounds_c2w = list(_rotate_world(np.stack(bounds_c2w), record))
+        xyz = xyz @ np.asarray(record["rotation"]).T
+    if len(xyz) >= 10:
+        lo, hi = np.percentile(xyz, 1, axis=0), np.percentile(xyz, 99, axis=0)
+        pad = 0.1 * (hi - lo)
+        meta["aabb"] = [(lo - pad).tolist(), (hi + pad).tolist()]
     box = (_scene_aabb(np.stack(bounds_c2w), np.array(bounds_fx), np.array(bounds_w), meta) if bounds_c2w
            else np.array([[-1.0] * 3, [1.0] * 3]))
     cams = _make_cameras(c2w, fxs, fys, cxs, cys, ws, hs, downscale)
@@ -884,7 +956,7 @@ def _load_colmap(path: Path, split: str, test_every: int, bg, downscale: int, di
 # ====================================================================== summary
 def scene_info(path: str | Path) -> dict:
     """Everything ``dars info`` reports about a scene, as a dict (no pixels are decoded): frames, image size and
-    ground-truth maps per split, format, intrinsics, box, near/far, the ground-truth light."""
+    ground-truth maps per split, format, intrinsics, box, near/far, the ground-truth light, the upright record."""
     path = Path(path)
     splits = list_splits(path)
     info: dict = {"scene": str(path), "splits": {}}
@@ -912,4 +984,5 @@ def scene_info(path: str | Path) -> dict:
     info["near_far"] = [first.near, first.far] if first.near is not None else None
     info["sh"] = first.sh.tolist() if first.sh is not None else None
     info["envmap"] = str(first.envmap_path) if first.envmap_path else None
+    info["upright"] = first.meta.get("upright")
     return info

@@ -20,7 +20,9 @@ up direction in three steps:
    squares, gives the final up, oriented to agree with the cameras.
 
 :func:`upright_rotation` returns the smallest rotation taking that up to +z (the heading about z is left as it
-was). Nothing here changes scale or centre.
+was). Nothing here changes scale or centre. :func:`plan_upright_rotation` is what :func:`toolkit.scene.load_scene` does
+with a posed input of arbitrary orientation: estimate the tilt and rotate only when it exceeds
+:data:`LOAD_TILT_TOLERANCE_DEG`.
 
 :func:`align_similarity` (Umeyama) and :func:`compare_poses` measure a pose estimate against reference poses
 given in another frame (rotation errors in degrees, centre errors as a fraction of the camera spread).
@@ -43,6 +45,8 @@ __all__ = [
     "estimate_world_up",
     "upright_rotation",
     "rotation_between",
+    "LOAD_TILT_TOLERANCE_DEG",
+    "plan_upright_rotation",
     "align_similarity",
     "compare_poses",
 ]
@@ -243,6 +247,43 @@ def upright_rotation(c2w, points=None, cfg: UprightConfig = UprightConfig()) -> 
         cfg: see :class:`UprightConfig`.
     """
     return rotation_between(estimate_world_up(c2w, points, cfg).up, [0.0, 0.0, 1.0])
+
+
+LOAD_TILT_TOLERANCE_DEG = 2.0
+"""Smallest estimated tilt (degrees) at which :func:`toolkit.scene.load_scene` rotates a scene upright.
+
+Below the estimator's own accuracy a rotation would only perturb an input that is already upright (a Blender or
+nerfstudio/instant-ngp transforms file is +z up by construction). Measured tilts of inputs known to be upright:
+synthetic NeRF Lego and our rendered galleries give exactly 0 deg; the real fox capture (instant-ngp, oriented by its
+mean camera up) gives 5.8 deg, so it is rotated. An SfM frame (COLMAP) is typically tens of degrees off or upside down
+(y down)."""
+
+
+def plan_upright_rotation(c2w, points=None, tolerance_deg: float = LOAD_TILT_TOLERANCE_DEG,
+                          cfg: UprightConfig = UprightConfig()) -> dict:
+    """Decide whether a posed scene needs rotating upright, and by what (the record :func:`load_scene` keeps).
+
+    Args:
+        c2w: float [N, 4, 4] OpenGL camera-to-world matrices (all frames of the scene, every split).
+        points: optional float [P, 3] sparse points in the same frame.
+        tolerance_deg: rotate only when the estimated tilt (angle between the estimated up and +z) exceeds this.
+        cfg: see :class:`UprightConfig`.
+
+    Returns:
+        A JSON-ready dict: ``rotation`` (float [3, 3] as nested lists: the rotation applied, ``x_new = rotation @ x``;
+        the identity when not applied), ``tilt_deg`` (estimated tilt of the input, degrees), ``source``
+        (``"cameras"`` or ``"cameras+plane"``), ``applied`` (tilt > tolerance), ``up`` (the estimated up in the input
+        frame), ``camera_inliers`` and ``tolerance_deg``.
+
+    Raises:
+        ShapeError, ConfigError: as :func:`estimate_world_up`.
+    """
+    up = estimate_world_up(c2w, points, cfg)
+    tilt = _angle_deg(up.up, np.array([0.0, 0.0, 1.0]))
+    applied = bool(tilt > tolerance_deg)
+    rot = rotation_between(up.up, [0.0, 0.0, 1.0]) if applied else np.eye(3)
+    return {"rotation": rot.tolist(), "tilt_deg": round(tilt, 4), "source": up.source, "applied": applied,
+            "up": up.up.tolist(), "camera_inliers": up.camera_inliers, "tolerance_deg": float(tolerance_deg)}
 
 
 def align_similarity(src, dst) -> tuple[float, np.ndarray, np.ndarray]:

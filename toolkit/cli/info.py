@@ -43,6 +43,11 @@ def cmd_info(args: argparse.Namespace) -> int:
         print(f"near/far  {info['near_far'][0]} / {info['near_far'][1]}")
     print(f"GT light  {'SH (27 coefficients)' if info['sh'] else 'none'}"
           f"{'; env map ' + info['envmap'] if info['envmap'] else ''}")
+    up = info.get("upright")
+    if up:
+        tilt = f"tilted {up['tilt_deg']:.1f} deg (world up from {up['source']})" if up["tilt_deg"] is not None else ""
+        print("upright   " + (f"rotated to +z up: input {tilt}" if up["applied"] else
+                               f"input frame kept: {up.get('kept') or tilt + ', within tolerance'}"))
     return 0
 
 

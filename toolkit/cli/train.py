@@ -31,6 +31,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--downscale", type=POSITIVE, default=1, metavar="N",
                    help="shrink the photos N times on load (default: 1); memory and time fall with N^2. Recorded in "
                         "the run: render, relight, eval and --resume use the same size")
+    q.add_argument("--no-upright", action="store_true",
+                   help="keep the scene's orientation: a COLMAP model, or a transforms JSON without an aabb that "
+                        "`dars poses` did not write, is otherwise rotated on load so that world up is +z. Recorded in "
+                        "the run: render, relight, eval and --resume load the scene the same way")
     q.add_argument("--priors", help="directory holding the prior stages' outputs (default: <scene>/priors)")
     q.add_argument("--no-dars", action="store_true", help="ablation: uniform rays + hierarchical sampling")
     q.add_argument("--no-semantics", action="store_true",
@@ -60,7 +64,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("run", help="run directory of `dars train`")
     q.add_argument("--out", required=True, help="output directory")
     q.add_argument("--split", default="test", help="split of the run's scene to render")
-    q.add_argument("--cameras", help="a transforms JSON whose frames are the camera path (instead of --split)")
+    q.add_argument("--cameras", help="a transforms JSON whose frames are the camera path, in the run's world frame "
+                                     "(instead of --split)")
     q.add_argument("--orbit", type=COUNT, default=0, help="render N views on an orbit around the scene instead")
     q.add_argument("--checkpoint", help="a snapshot checkpoint instead of the run's last one")
     q.add_argument("--limit", type=COUNT, default=0, help="render at most N views")
@@ -191,7 +196,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     cfg = make_config(args.preset or "fast", **overrides)
     try:
         ck = train(args.scene, args.out, cfg, resume=args.resume, split=args.split or "train",
-                   progress_bar=not args.quiet, priors_root=args.priors, force=args.force, downscale=args.downscale)
+                   progress_bar=not args.quiet, priors_root=args.priors, force=args.force, downscale=args.downscale,
+                   upright="off" if args.no_upright else "auto")
     finally:
         shutdown()
     if ddp is None or ddp.is_main:
@@ -203,15 +209,15 @@ def _views(args):
     """(cameras or None, file keys) of ``--cameras FILE``, ``--orbit N`` (cameras: None until the run is loaded) or
     the run's scene ``--split``; read before the run, so a bad camera file or split fails before any heavy work."""
     from ..scene import load_scene
-    from ..train.folder import find_run
+    from ..train.folder import find_run, run_scene_options
 
     meta, _ = find_run(args.run, args.checkpoint)
-    if args.cameras:
-        scene = load_scene(args.cameras, "all")
+    if args.cameras:  # a camera path is in the run's world frame: never re-oriented on its own
+        scene = load_scene(args.cameras, "all", upright="off")
     elif args.orbit:
         return None, [f"orbit_{i:03d}" for i in range(args.orbit)]
     else:
-        scene = load_scene(meta["scene"], args.split, downscale=int(meta.get("downscale", 1)))
+        scene = load_scene(meta["scene"], args.split, **run_scene_options(meta))
     return scene.cameras, [f.key for f in scene.frames]
 
 

@@ -16,7 +16,8 @@ from .._checks import ConfigError, DarsError
 from ..io import check_torch_file, load_torch, read_json
 from ..outputs import RUN_FILES, OutputDir, read_manifest
 
-__all__ = ["open_run_dir", "find_run", "read_run_meta", "read_run_config", "read_checkpoint", "check_priors_root",
+__all__ = ["open_run_dir", "find_run", "read_run_meta", "read_run_config", "run_scene_options", "read_checkpoint",
+           "check_priors_root",
            "FIRST_CHECKPOINT_STEPS", "FIRST_CHECKPOINT_SECONDS", "first_checkpoint_due", "CHECKPOINT_KEYS"]
 
 FIRST_CHECKPOINT_STEPS = 100
@@ -84,6 +85,14 @@ def find_run(run_dir: str | os.PathLike, checkpoint: str | os.PathLike | None = 
                         f"with `dars train --resume --out {run_dir}` or start it again with --force")
     check_torch_file(ck_path, "checkpoint", _fix(run_dir))
     return meta, ck_path
+
+
+def run_scene_options(meta: dict) -> dict:
+    """How a run loaded its scene, from its ``config.json``: the :func:`~toolkit.scene.load_scene` keywords
+    ``downscale`` (``dars train --downscale``; 1 for runs written before it) and ``upright`` (``"off"`` with
+    ``--no-upright``, and for runs written before scenes were made upright on load: they trained in the input's frame).
+    """
+    return {"downscale": int(meta.get("downscale", 1)), "upright": meta.get("upright", "off")}
 
 
 def read_run_config(meta: dict, path: str | os.PathLike):

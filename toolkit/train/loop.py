@@ -19,7 +19,7 @@ from ..sampling import OccupancyGrid
 from ..scene import load_scene
 from .config import TrainConfig, resolve_config
 from .data import prepare_data
-from .folder import first_checkpoint_due, open_run_dir, read_checkpoint, read_run_config
+from .folder import first_checkpoint_due, open_run_dir, read_checkpoint, read_run_config, run_scene_options
 from .step import (TrainingDiverged, TrainState, calibrate_steps, init_state, light_step, lr_progress, progress,
                    train_step)
 
@@ -117,7 +117,8 @@ def _plot_curves(log_path: Path, out: Path) -> None:
 
 def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume: bool = False, split: str = "train",
           progress_bar: bool = True, log=None, stop_at: int | None = None,
-          priors_root: str | Path | None = None, force: bool = False, downscale: int = 1) -> Path:
+          priors_root: str | Path | None = None, force: bool = False, downscale: int = 1,
+          upright: str = "auto") -> Path:
     """Train on ``scene_path`` into the run directory ``out_dir``; returns the checkpoint path.
 
     With ``resume`` the run continues from ``out_dir/checkpoint.pt`` with the saved config (``cfg`` may only
@@ -128,6 +129,8 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
     holding a run (its run files are replaced), or write beside other files (never over them; :mod:`toolkit.outputs`).
     ``downscale``: shrink the photos (and intrinsics) by this integer factor on load; recorded in the run
     (``config.json`` key ``downscale``) so rendering, evaluation and ``resume`` use the same image size.
+    ``upright``: ``load_scene``'s ``upright`` (``"off"``: keep the input's orientation, ``dars train --no-upright``);
+    recorded in the run (key ``upright``) so they load the scene in the same frame.
     """
     from tqdm import tqdm
 
@@ -153,18 +156,21 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
         scene_path = saved["scene"]
         split = saved.get("split", split)
         priors_root = saved.get("priors_root")
-        saved_downscale = int(saved.get("downscale", 1))
-        if downscale not in (1, saved_downscale):
-            raise DarsError(f"--resume: {out} was trained with --downscale {saved_downscale}, not {downscale}; "
+        loaded = run_scene_options(saved)  # the scene is loaded as it was: same image size, same frame
+        if downscale not in (1, loaded["downscale"]):
+            raise DarsError(f"--resume: {out} was trained with --downscale {loaded['downscale']}, not {downscale}; "
                             "drop --downscale or start a new run")
-        downscale = saved_downscale
+        if upright not in ("auto", loaded["upright"]):
+            raise DarsError(f"--resume: {out} was trained with the scene made upright on load, not with --no-upright; "
+                            "drop --no-upright or start a new run")
+        downscale, upright = loaded["downscale"], loaded["upright"]
     else:
         saved_calibration = None
     if not cfg.steps and not cfg.minutes:
         raise ConfigError("give a training length: --steps N or --minutes M")
     if cfg.device != "auto" and cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"device={cfg.device} requested but CUDA is not available")
-    scene = load_scene(scene_path, split, downscale=downscale)
+    scene = load_scene(scene_path, split, downscale=downscale, upright=upright)
     if ddp is not None:  # rank 0 resolves the box and grid; the others take its config
         if main:
             cfg, _ = resolve_config(cfg, scene, log)
@@ -202,7 +208,8 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
         if not main:
             return
         write_json(cfg_path, {"config": cfg.to_dict(), "scene": str(Path(scene_path).resolve()), "split": split,
-                              "downscale": downscale, "priors_root": str(Path(priors_root).resolve()) if priors_root else None,
+                              "downscale": downscale, "upright": upright,
+                              "priors_root": str(Path(priors_root).resolve()) if priors_root else None,
                               "priors": data.priors_used, "l_env_init": data.l_env_init.tolist(),
                               "l_env_source": data.l_env_source, "torch": torch.__version__,
                               "calibration": calibration, "world_size": world_size})

@@ -26,7 +26,7 @@ from ..sampling import OccupancyGrid
 from ..scene import Scene, load_scene
 from .config import TrainConfig
 from .data import prepare_data
-from .folder import find_run, read_checkpoint, read_run_config
+from .folder import find_run, read_checkpoint, read_run_config, run_scene_options
 
 __all__ = ["Run", "load_run", "render_views", "FieldCallables", "field_callables", "load_field_callables"]
 
@@ -73,8 +73,8 @@ class Run:
         return int(self.meta.get("downscale", 1))
 
     def load_split(self, split: str) -> Scene:
-        """Split ``split`` of the run's scene at the run's image size (its ``downscale``)."""
-        return load_scene(self.scene_path, split, downscale=self.downscale)
+        """Split ``split`` of the run's scene at the run's image size and in its frame (``downscale``, ``upright``)."""
+        return load_scene(self.scene_path, split, **run_scene_options(self.meta))
 
     def priors_dir(self, stage: str) -> Path:
         """Where this run read (or would have read) the ``stage`` prior: ``--priors DIR`` if training had one."""
@@ -118,7 +118,7 @@ def load_run(run_dir: str | Path, checkpoint: str | Path | None = None, device: 
     meta, ck_path = find_run(run_dir, checkpoint)
     cfg = read_run_config(meta, cfg_path)
     ck = read_checkpoint(ck_path, map_location=device, run_dir=run_dir)
-    scene = load_scene(meta["scene"], meta.get("split", "train"), downscale=int(meta.get("downscale", 1)))
+    scene = load_scene(meta["scene"], meta.get("split", "train"), **run_scene_options(meta))
     if cfg.scene_box is not None:  # the box the run was trained with (fitted to the data when the file has none)
         scene = replace(scene, aabb=torch.tensor(cfg.scene_box, dtype=torch.float32))
     fld = DarsField(cfg.field, scene.aabb).to(device)
