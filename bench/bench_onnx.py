@@ -71,7 +71,6 @@ def main(argv=None) -> int:
     from export import infer
     from export.field_onnx import FieldExportConfig, FieldOnnxModule, _TorchHashGrid, export_onnx_models
     from toolkit.io import linear_to_srgb
-    from toolkit.scene import load_scene
     from toolkit.train import load_run
 
     threads = [int(t) for t in args.threads.split(",") if t.strip()]
@@ -89,7 +88,7 @@ def main(argv=None) -> int:
     dirs = torch.nn.functional.normalize(torch.randn(args.points, 3, generator=g), dim=-1)
     sh = run.l_env.reshape(9, 3)
     split, index = args.view.rsplit(":", 1)
-    sc = load_scene(run.scene_path, split)
+    sc = run.load_split(split)
     index = int(index)
     cam = infer.PinholeCamera.from_cameras(sc.cameras, index)
     gt = sc.load_image(index).numpy().transpose(1, 2, 0)

@@ -62,11 +62,10 @@ def _eval_psnr(run_dir: Path, split: str, checkpoint: Path | None, views: list[i
     from toolkit.metrics import albedo_mae, material_mask, psnr
     from toolkit.pipeline import RenderInputs, render_image
     from toolkit.train import load_run
-    from toolkit.scene import load_scene
 
     torch.set_num_threads(threads)
     run = load_run(run_dir, checkpoint)
-    sc = load_scene(run.scene_path, split)
+    sc = run.load_split(split)
     idx = views if views is not None else list(range(len(sc)))
     ps, maes, nmae = [], [], []
     t0 = time.time()
@@ -208,13 +207,12 @@ def _asset_depth_and_preview(run_dir: Path, asset_dir: Path, threads: int) -> di
     from toolkit.io import linear_to_srgb
     from toolkit.metrics import mesh_depth_error, psnr
     from toolkit.pinhole import PinholeCamera
-    from toolkit.scene import load_scene
     from toolkit.train import load_run
     from viewers.preview import OffscreenPreview
 
     torch.set_num_threads(threads)
     run = load_run(run_dir)
-    sc = load_scene(run.scene_path, "test")
+    sc = run.load_split("test")
     glb = asset_dir / "scene.glb"
     asset = load_glb(glb)
     verts, faces = asset.vertices, asset.faces

@@ -113,11 +113,10 @@ def baked_vs_field_psnr(run: Path, asset: Path, views=(0, 7, 14)) -> dict:
     from toolkit.metrics import psnr
     from toolkit.pinhole import PinholeCamera
     from toolkit.train import load_run
-    from toolkit.scene import load_scene
     from viewers.preview import OffscreenPreview, PreviewConfig
 
     r = load_run(run)
-    scene = load_scene(r.scene_path, "test")
+    scene = r.load_split("test")
     extent = float(np.linalg.norm((scene.aabb[1] - scene.aabb[0]).numpy()))
     chw = lambda a: torch.as_tensor(np.asarray(a, np.float32)).permute(2, 0, 1)  # noqa: E731
     lit, alb = [], []
