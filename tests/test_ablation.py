@@ -260,3 +260,16 @@ def test_old_no_semantics_configs_keep_both_switches_off():
     del full["mat_labels"]
     assert TrainConfig.from_dict(full).mat_labels is True
     assert variant_of(make_config("fast", mat_loss=False)) == "no_mat_loss"
+
+
+def test_variants_option_takes_commas_hyphens_and_spaces():
+    """``--variants full,no-dars`` (the issue's form) and ``--variants full no_dars`` name the same variants."""
+    from toolkit.cli import build_parser
+    from toolkit.cli.evaluate import flat_variants
+
+    p = build_parser()
+    for argv in (["full,no-dars"], ["full", "no_dars"], ["full,no_dars", "no-dars"]):
+        a = p.parse_args(["ablate", "scene", "--out", "o", "--steps", "1", "--variants", *argv])
+        assert flat_variants(a.variants) == ["full", "no_dars"], argv
+    with pytest.raises(SystemExit):
+        p.parse_args(["ablate", "scene", "--out", "o", "--steps", "1", "--variants", "full,no-light"])

@@ -49,8 +49,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="comma-separated seeds, e.g. 0,1,2: every variant once per seed")
     from ..ablation import VARIANTS  # imports nothing heavy
 
-    q.add_argument("--variants", nargs="+", choices=list(VARIANTS), help="subset of variants (default: all six); "
-                   "no_semantics removes the semantic input (L_semantic, label edges in W), no_mat_loss removes L_mat")
+    q.add_argument("--variants", nargs="+", type=_variant_list, action="extend", metavar="VARIANTS",
+                   help=f"subset of variants, comma- or space-separated (default: all six: {','.join(VARIANTS)}; "
+                        "no-dars is no_dars); no_semantics removes the semantic input (L_semantic, label edges in W), "
+                        "no_mat_loss removes L_mat")
     q.add_argument("--split", default="test", help="split to evaluate")
     q.add_argument("--limit", type=COUNT, default=0, help="evaluate at most N views per variant")
     q.add_argument("--lpips-weights", help="LPIPS weight file(s)/folder")
@@ -114,12 +116,30 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _variant_list(text: str) -> list[str]:
+    """argparse type of ``--variants``: comma-separated names, ``no-dars`` for ``no_dars``."""
+    from ..ablation import VARIANTS
+
+    names = [t.strip().replace("-", "_") for t in text.split(",") if t.strip()]
+    bad = [n for n in names if n not in VARIANTS]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(f"unknown variant(s) {bad or [text]}: choose from {', '.join(VARIANTS)}")
+    return names
+
+
+def flat_variants(values: list) -> list[str]:
+    """``--variants full,no-dars`` and ``--variants full no_dars`` alike: one flat list, each name once, in order."""
+    return list(dict.fromkeys(v for part in values for v in (part if isinstance(part, list) else [part])))
+
+
 def cmd_ablate(args: argparse.Namespace) -> int:
     from ..ablation import ABLATION_FILES, VARIANTS
     from ..outputs import OutputDir
     from ..train.folder import check_priors_root
 
     set_threads(args.threads)
+    if args.variants:
+        args.variants = flat_variants(args.variants)
     if not (args.steps or args.minutes):
         raise DarsError("give a positive training budget per variant: --steps N or --minutes M")
     if args.batch_rays and args.batch_rays < 16:
