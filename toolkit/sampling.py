@@ -104,14 +104,16 @@ class OccupancyGrid:
 
     Each cell keeps an exponential moving maximum of the field's density at random points in it
     (Instant-NGP): ``d ← max(decay · d, σ(x))``. A cell is occupied when ``d · step · s(x) > threshold`` — the
-    opacity of a fine reference step (Instant-NGP's render step: box diagonal / 1024), ``s(x)`` the contraction's
-    stretch at the cell (:meth:`toolkit.space.SceneSpace.step_scale`: far cells are crossed by longer steps) — or,
-    early on, when it is above the mean. All cells start occupied and stay so during warm-up.
+    opacity one sample in it adds, ``step`` the spacing of the samples (the trainer passes box diagonal / coarse
+    samples per ray; Instant-NGP's own fine render step, diagonal / 1024, would count density that a coarse sample
+    still sees as empty), ``s(x)`` the contraction's stretch at the cell
+    (:meth:`toolkit.space.SceneSpace.step_scale`: far cells are crossed by longer steps) — or, early on, when it is
+    above the mean. All cells start occupied and stay so during warm-up.
 
     Args:
         aabb: float [2, 3] scene box.
         resolution: cells per axis.
-        step: reference step (metres) that turns density into opacity.
+        step: sample spacing (metres) that turns density into opacity.
         threshold: opacity below which a cell counts as empty.
         decay: EMA decay per update.
         contraction: cover all of space through the scene contraction (:mod:`toolkit.space`); False: the box only.
