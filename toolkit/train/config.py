@@ -100,8 +100,11 @@ class TrainConfig:
     ``auto``: ``object`` when the photos have real transparency (RGBA with alpha < 1), else ``unbounded``."""
     background_start: Literal["auto", "border", "dark"] = "auto"
     """Where a learned background starts: ``border`` — the median colour of the photos' outer pixels; ``dark`` —
-    black, so the field must explain what the photos show before the background may (the walls of a room become
-    surfaces instead of environment). ``auto``: dark for unbounded scenes, border otherwise."""
+    black, so the field must explain what the photos show before the background may. ``auto``: border. Dark was the
+    default for unbounded scenes (meant to turn a room's walls into surfaces rather than environment), but on unseen
+    galleries it left fog and black holes: 300 steps of validation gallery 1000000 gave 18.4 dB test PSNR, albedo
+    MAE 0.65, normal MAE 100° with dark against 22.0 dB, 0.24, 76° with border (one seed; 22.5 dB / 0.17 / 72° with
+    border once the occupancy grid stopped pruning density the samples still see)."""
     lr_background: float = 0.0
     """Learning rate of the background (0: ``lr_grid``)."""
     scene_box: tuple | None = None
