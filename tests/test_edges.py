@@ -9,6 +9,8 @@ from toolkit.edges import (
     distortion_loss,
     gradient_magnitude,
     minmax_normalise,
+    normalise_weight_map,
+    quantile_normalise,
     semantic_edges,
     smooth_weight_map,
     weight_map,
@@ -392,3 +394,16 @@ def test_priors_weights_python_api(tmp_path):
     with pytest.raises(DarsError, match="no scene labels"):
         priors_weights(load_scene(write_scene(tmp_path / "bare", 1, 1, 16, with_labels=False), "train"),
                        tmp_path / "w2", labels="scene")
+
+
+def test_normalise_weight_map_clamps_then_ranks():
+    w = torch.tensor([[0.2, -0.1, 0.7], [1.4, 0.2, 0.5]])
+    none = normalise_weight_map(w, "none")
+    assert none.dtype == torch.float32 and none.reshape(-1).tolist() == pytest.approx([0.2, 0.0, 0.7, 1.0, 0.2, 0.5])
+    q = normalise_weight_map(w)  # quantile: uniform ranks, ties share their mean rank
+    assert torch.equal(q, quantile_normalise(none[None])[0])
+    assert q[0, 1] < q[0, 0] == q[1, 1] < q[1, 2] < q[0, 2] < q[1, 0]
+    with pytest.raises(ShapeError, match="weights"):
+        normalise_weight_map(w[None])
+    with pytest.raises(ConfigError, match="'rank'"):
+        normalise_weight_map(w, "rank")

@@ -63,13 +63,32 @@ def test_read_priors_reads_every_stage(bare, tmp_path):
     p = read_priors(bare, root)
     assert p.labels.data.dtype == torch.uint8 and p.labels_source == f"predicted ({root / 'segment'})"
     assert p.labels.data.shape == (3 * 16 * 16,) and int(p.labels[1].max()) == 2
-    assert p.weights.data.dtype == torch.float16 and len(p.weights) == 3 and p.weights[2].shape == (16, 16)
-    assert float(p.weights[2].max()) == 0.5
+    assert p.weights.data.dtype == torch.uint8 and p.weights.quantised and len(p.weights) == 3
+    assert p.weights[2].shape == (16, 16) and abs(float(p.weights[2].max()) - 0.5) <= 0.5 / 255 + 1e-6
     assert p.distortion.tolist() == [0.0, 0.5, 0.0] and p.weights_source == f"loaded ({root / 'weights'})"
     assert p.light.shape == (9, 3) and float(p.light[8, 2]) == 26.0
     assert read_priors(bare, root, weights=False).weights is None
     assert priors_path(bare, "light", root) == root / "light"
     assert priors_path(bare, "light") == bare.priors_dir("light")
+
+
+def test_read_priors_ranks_w_before_storing_it_at_8_bits(bare, tmp_path):
+    """``weights_normalise="quantile"`` ranks the map as written (float16), then stores it at 8 bits: a map whose
+    values all fall within one 1/255 step still spreads over [0, 1] (ranking the stored bytes would tie them all)."""
+    from toolkit.edges import quantile_normalise
+
+    root = tmp_path / "priors"
+    (root / "weights").mkdir(parents=True)
+    ramp = (0.01 + 0.0025 * np.linspace(0.0, 1.0, 256)).reshape(16, 16).astype(np.float16)  # all round to 3 / 255
+    for f in bare.frames:
+        np.save(root / "weights" / f"{f.key}.npy", ramp)
+    raw = read_priors(bare, root, weights_normalise="none").weights
+    assert bool((raw.data == 3).all())  # stored as written: one 8-bit level
+    ranked = read_priors(bare, root, weights_normalise="quantile").weights
+    assert ranked.data.dtype == torch.uint8
+    want = quantile_normalise(torch.from_numpy(ramp.astype(np.float32))[None])[0]
+    assert float((ranked[0] - want).abs().max()) <= 0.5 / 255 + 1e-6
+    assert float(ranked[0].min()) < 0.05 and float(ranked[0].max()) > 0.95
 
 
 def test_output_dir_keeps_user_files(bare, tmp_path):

@@ -246,6 +246,33 @@ def _mixed_sizes(src, dst):
     return dst
 
 
+@pytest.mark.parametrize("normalise", ["quantile", "none"])
+def test_prepare_data_stores_w_once_at_8_bits(tiny, tmp_path, normalise):
+    """W computed by the trainer is normalised at full precision and stored as uint8 (1 byte a pixel): every view
+    reads back as the float map (rank-normalised for ``quantile``) within half a quantisation step."""
+    from dataclasses import replace
+
+    from toolkit.edges import WeightMapConfig, quantile_normalise, weight_map
+    from toolkit.train import prepare_data
+
+    scene = load_scene(tiny, "train").subset([0, 5, 11])
+    cfg = make_config("fast", labels="ground-truth")
+    cfg = replace(cfg, sampler=replace(cfg.sampler, normalise=normalise))
+    data = prepare_data(scene, cfg, log=lambda m: None, priors_root=tmp_path / "no_priors")
+    assert data.priors_used["weights"] == "computed (G+E+M)"
+    assert data.weights.data.dtype == torch.uint8 and data.weights.quantised
+    assert data.weights.nbytes == data.weights.n_pixels  # 1 byte a pixel
+    for i in range(len(scene)):
+        lab, metal = scene.load_extra(i, "semantic"), scene.load_extra(i, "metal")
+        w = weight_map(scene.load_image(i)[None], lab[None], metal[None], WeightMapConfig()).weights.clamp(0, 1)
+        want = quantile_normalise(w)[0] if normalise == "quantile" else w[0]
+        got = data.weights[i]
+        assert got.dtype == torch.float32 and got.shape == want.shape
+        assert float((got - want).abs().max()) <= 0.5 / 255 + 1e-6
+        flat = torch.arange(int(data.weights.offsets[i]), int(data.weights.offsets[i + 1]))
+        assert torch.equal(data.weights.gather(flat), got.reshape(-1))  # the sampler's reads: the same floats
+
+
 def test_training_on_photos_of_different_sizes(tiny, tmp_path):
     """Portrait, landscape and square photos end to end: the prior stages (builtin segmenter trained on the photos
     of one size, light network, W maps) and a run with packed pixels, labels, metal and W maps of each view's own
@@ -264,7 +291,7 @@ def test_training_on_photos_of_different_sizes(tiny, tmp_path):
     run = load_run(tmp_path / "r")
     assert run.weight_maps[0].shape == (32, 24) and run.weight_maps[1].shape == (20, 32)
     assert run.weight_maps[2].shape == (32, 32)
-    assert run.weight_maps.data.dtype == torch.float16
+    assert run.weight_maps.data.dtype == torch.uint8 and run.weight_maps.quantised
     out = run.render(run.train_scene.cameras, 1)
     assert out.rgb.shape[:2] == (20, 32) and bool(torch.isfinite(out.rgb).all())
     priors = json.loads((tmp_path / "r" / "config.json").read_text())["priors"]

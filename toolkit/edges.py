@@ -61,6 +61,7 @@ __all__ = [
     "semantic_edges",
     "minmax_normalise",
     "quantile_normalise",
+    "normalise_weight_map",
     "smooth_weight_map",
     "distortion_loss",
     "weight_overlay",
@@ -246,6 +247,31 @@ def quantile_normalise(x: torch.Tensor) -> torch.Tensor:
     lo = torch.searchsorted(srt, flat.contiguous(), right=False)
     hi = torch.searchsorted(srt, flat.contiguous(), right=True)
     return ((lo + hi).to(x.dtype) / (2.0 * n)).reshape_as(x)
+
+
+def normalise_weight_map(weights: torch.Tensor, mode: Literal["quantile", "none"] = "quantile") -> torch.Tensor:
+    """One W map as the DARS sampler reads it (:attr:`toolkit.sampling.SamplerConfig.normalise`): clamped to [0, 1],
+    then rank-normalised per image (:func:`quantile_normalise`) for ``quantile``, as is for ``none``.
+
+    Apply it to the full-precision map, before it is stored at 8 bits (the trainer's W buffer): ranking an already
+    quantised map would merge pixels that share a 1/255 level into ties.
+
+    Args:
+        weights: float [H, W] W in [0, 1].
+        mode: ``quantile`` or ``none``.
+
+    Returns:
+        float [H, W] in [0, 1].
+
+    Raises:
+        ShapeError: ``weights`` is not [H, W].
+        ConfigError: an unknown ``mode``.
+    """
+    check_shape(weights, "H W", name="weights")
+    if mode not in ("quantile", "none"):
+        raise ConfigError(f"W normalisation {mode!r}: choose 'quantile' or 'none'")
+    w = weights.float().clamp(0.0, 1.0)
+    return quantile_normalise(w[None])[0] if mode == "quantile" else w
 
 
 def _laplacian_eigenvalues(n: int, dtype, device) -> torch.Tensor:

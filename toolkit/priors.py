@@ -478,8 +478,9 @@ class TrainingPriors:
         labels_source: ``provided`` (the scene's), ``predicted (<dir>)``, ``none`` or ``off``.
         metal: bool [P] metal masks (the scene's or predicted), or None.
         metal_source: ``provided``, ``predicted (<dir>)`` or ``none``.
-        weights: float16 [P] W maps of ``dars priors weights`` (as written: float16), or None (not there, or not asked
-            for). Maps written at another image size (another ``--downscale``) are resized to the frames'.
+        weights: uint8 [P] W maps of ``dars priors weights`` (``quantised``: ``round(255 W)``, read back as floats in
+            [0, 1]; rank-normalised first when asked, see :func:`read_priors`), or None (not there, or not asked for).
+            Maps written at another image size (another ``--downscale``) are resized to the frames'.
         distortion: float [V] L_distortion of each loaded map (0 where ``weights.json`` lacks it), or None.
         weights_source: ``loaded (<dir>)`` or None.
         light: float32 [9, 3] SH coefficients of ``light.json``, or None.
@@ -502,7 +503,8 @@ class TrainingPriors:
 
 
 def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *, labels: LabelSource | None = "auto",
-                weights: bool = True, colour: bool = True, metal: str = "scene") -> TrainingPriors:
+                weights: bool = True, colour: bool = True, metal: str = "scene",
+                weights_normalise: Literal["quantile", "none"] = "none") -> TrainingPriors:
     """Read the priors of ``scene`` for training, file by file into packed buffers (nothing is computed here).
 
     Args:
@@ -511,6 +513,8 @@ def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *,
         labels: label source for :func:`labels_for` over every frame (predictions from ``segment/``); None: semantics
             off (``labels_source`` ``off``).
         weights: read ``weights/<key>.npy`` (used only when every frame has one).
+        weights_normalise: how each W map is normalised (:func:`toolkit.edges.normalise_weight_map`: clamped to
+            [0, 1], rank-normalised for ``quantile``) on the full-precision map, before it is stored at 8 bits.
         colour: read ``colour/colour.json``.
         metal: where the metal mask comes from: ``scene`` (the scene's ``metal_path`` ground truth, when every frame
             has one), ``segment`` (``segment/<key>_metal.png`` predictions, when every frame has one) or ``none``.
@@ -552,13 +556,16 @@ def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *,
     wdir = priors_path(scene, "weights", priors_root)
     wfiles = [wdir / f"{f.key}.npy" for f in scene.frames]
     if weights and wdir.is_dir() and all(p.is_file() for p in wfiles):
-        out.weights = PackedViews.allocate(hs, ws, dtype=torch.float16)
+        from .edges import normalise_weight_map
+
+        out.weights = PackedViews.allocate(hs, ws, quantised=True)
         resized = 0
         for i, p in enumerate(wfiles):
             w = _read_weight_map(p)
             fitted = _fit_to_frame(scene, i, w, nearest=False)
             resized += fitted.shape != w.shape
-            out.weights.write(i, torch.from_numpy(np.ascontiguousarray(fitted)))
+            fitted = torch.from_numpy(np.ascontiguousarray(fitted))
+            out.weights.write(i, normalise_weight_map(fitted, weights_normalise))  # ranked before the 8-bit write
         meta_p = wdir / "weights.json"
         out.distortion = torch.zeros(V)
         if meta_p.is_file():

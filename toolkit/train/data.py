@@ -5,21 +5,24 @@ Memory does not grow with megapixels beyond the stored pixels themselves: every 
 (:class:`toolkit.pixels.PackedViews`, views of any sizes one after another) at reduced precision and converted to
 float per batch (:func:`toolkit.train.step.sample_batch`). Bytes per training pixel:
 
-=================  ====================================  =====
-quantity           storage                               bytes
-=================  ====================================  =====
-colour             uint8 x 3, ``round(255 c)``           3
-W (DARS)           float16 (rank-normalised, in [0, 1])  2
-labels             uint8 class ids (255 unlabelled)      1
-metal mask         bool                                  1
-albedo (optional)  float16 x 3 (``--albedo-supervision``) 6
-=================  ====================================  =====
+=================  =============================================  =====
+quantity           storage                                        bytes
+=================  =============================================  =====
+colour             uint8 x 3, ``round(255 c)``                    3
+W (DARS)           uint8, ``round(255 W)`` (rank-normalised W)    1
+labels             uint8 class ids (255 unlabelled)               1
+metal mask         bool                                           1
+albedo (optional)  float16 x 3 (``--albedo-supervision``)         6
+=================  =============================================  =====
 
-so 5-7 bytes a pixel (58 photos of 1 MP: 0.4 GB; the float32 images alone were 0.7 GB, and the whole loader with
-its float64 sampling table and float temporaries peaked near 30 bytes a pixel). Colour at 8 bits is exact for 8-bit
-photos (JPEG/PNG); RGBA composites and resampled (``downscale``) images round to 1/255. W at float16 keeps 11
-significant bits (an error below 2.5e-4 in [0, 1]). Images are decoded one at a time (the transient is one photo in
-float32); with ``cache_dir`` the colour buffer is a memory-mapped file on disk instead of RAM.
+so 4-6 bytes a pixel (colour and W always, labels and the metal mask when used; albedo supervision adds 6): 58
+photos of 1 MP take 0.35 GB, where the float32 images alone were 0.7 GB and the whole loader with its float64 sampling
+table and float temporaries peaked near 30 bytes a pixel. Colour at 8 bits is exact for 8-bit photos (JPEG/PNG); RGBA
+composites and resampled (``downscale``) images round to 1/255. Each W map is normalised at full precision
+(:func:`toolkit.edges.normalise_weight_map`: rank normalisation, so ranks are taken before any rounding) and then
+written once at 8 bits, an error of at most 1/510 (float16 W took 2 bytes a pixel). Images are decoded one at a time
+(the transient is one photo in float32); with ``cache_dir`` the colour buffer is a memory-mapped file on disk instead
+of RAM.
 """
 
 from __future__ import annotations
@@ -50,8 +53,8 @@ class TrainData:
             float16 for linear (HDR) scenes.
         labels: uint8 [P] class ids (255 unlabelled) or None.
         metal: bool [P] or None.
-        weights: float16 [P] DARS weight maps W in [0, 1] (rank-normalised per view unless
-            ``sampler.normalise == "none"``).
+        weights: uint8 [P] DARS weight maps W, ``quantised`` (``round(255 W)``; ``[i]`` and ``gather`` read floats in
+            [0, 1]), rank-normalised per view unless ``sampler.normalise == "none"``.
         distortion: float [V] L_distortion of each map.
         albedo_gt: float16 [P, 3] linear ground-truth albedo (only with albedo supervision) or None.
         l_env_init: float [9, 3] initial light and where it came from.
@@ -89,8 +92,9 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
 
     Priors come from the scene (provided labels and metal masks) or from the prior stages' outputs under
     ``priors_root/<stage>/`` (default ``<scene>/priors/<stage>/``; :func:`toolkit.priors.read_priors`); W maps are
-    computed here when absent. Without any priors: uniform weights, no labels, SH initialised to a grey ambient —
-    training still works.
+    computed here when absent. Either way each W map is normalised at full precision (``cfg.sampler.normalise``,
+    :func:`toolkit.edges.normalise_weight_map`) and written once to a uint8 buffer. Without any priors: uniform
+    weights, no labels, SH initialised to a grey ambient — training still works.
 
     Args:
         scene: the training split (views may differ in size).
@@ -101,7 +105,7 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
             larger than RAM), or None for RAM.
         with_images: False: only what rendering needs (W maps, light); ``images`` is then an empty layout.
     """
-    from ..edges import WeightMapConfig, quantile_normalise, weight_map
+    from ..edges import WeightMapConfig, normalise_weight_map, weight_map
 
     V = len(scene)
     hs, ws = scene.cameras.height, scene.cameras.width
@@ -115,7 +119,8 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
     use_mat = cfg.mat_labels and cfg.losses.mat > 0 and cfg.shading == "pbr"
     pri = read_priors(scene, priors_root, labels=source if (cfg.semantics or use_mat) else None, weights=cfg.semantics,
                       colour=cfg.colour_correction != "off",
-                      metal={"ground-truth": "scene", "predicted": "segment"}.get(cfg.labels, "none"))
+                      metal={"ground-truth": "scene", "predicted": "segment"}.get(cfg.labels, "none"),
+                      weights_normalise=cfg.sampler.normalise)
     labels, metal = pri.labels, pri.metal
     priors: dict = {"labels": pri.labels_source, "metal": pri.metal_source}
     if labels is not None:
@@ -131,7 +136,7 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
     else:
         images = _layout_only(hs, ws)
     computed = pri.weights is None
-    wm = pri.weights if not computed else PackedViews.allocate(hs, ws, dtype=torch.float16)
+    wm = pri.weights if not computed else PackedViews.allocate(hs, ws, quantised=True)
     dist = pri.distortion if not computed else torch.zeros(V)
     albedo_gt = None
     if cfg.albedo_supervision and scene.has_extra("albedo") and with_images:
@@ -150,7 +155,7 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
             lab = None if w_labels is None else w_labels.raw(i).long()[None]
             met = None if metal is None else metal.raw(i)[None]
             wm_i = weight_map(img[None], lab, met, wcfg)
-            wm.write(i, wm_i.weights[0])
+            wm.write(i, normalise_weight_map(wm_i.weights[0], cfg.sampler.normalise))  # one write, at 8 bits
             dist[i] = float(wm_i.distortion_loss[0])
         if albedo_gt is not None:
             albedo_gt.write(i, scene.load_extra(i, "albedo").permute(1, 2, 0))
@@ -160,10 +165,6 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
             if scene.background is not None:
                 obj = ((img - bg).abs().amax(0, keepdim=True) > 0.02).expand_as(lin)
                 lin_sum, lin_n = lin_sum + float(lin[obj].sum(dtype=torch.float64)), lin_n + int(obj.sum())
-        w = wm[i].clamp(0, 1)
-        if cfg.sampler.normalise == "quantile":
-            w = quantile_normalise(w[None])[0]
-        wm.write(i, w)
     if computed:
         priors["weights"] = "computed (G" + ("+E" if w_labels is not None else "") + ("+M" if metal is not None else "") + ")"
     else:

@@ -41,8 +41,8 @@ class Run:
         scene_path, split: the scene and split it trained on.
         field, background, l_env, occupancy: the trained state (l_env: float [9, 3] SH light).
         train_scene: the training split (its box, near/far and cameras are the run's).
-        weight_maps: W maps of the training views, packed (:class:`toolkit.pixels.PackedViews`, float16; ``[i]`` gives
-            view i as float [H, W]) for DARS at render time, or None.
+        weight_maps: W maps of the training views, packed (:class:`toolkit.pixels.PackedViews`, uint8
+            ``quantised``; ``[i]`` gives view i as float [H, W] in [0, 1]) for DARS at render time, or None.
         step, elapsed: training steps and seconds done.
         meta: ``config.json`` as a dict (priors used, initial light, ...).
     """
