@@ -534,7 +534,9 @@ def test_baked_sample_matches_the_field_render(tmp_path_factory, gl):
     A 160-step run (~3 min, one thread) is still a translucent fog (peak density ~1.5 /m), so its iso-surface and
     its volume render disagree in shading: measured lit ~17.5-18.6 dB while the albedo agrees at ~30-32 dB; the lit
     figure rises with training (~21 dB after 7.5 min, 24-26 dB after 12.5 min; bench/bench_viewer.py --psnr-run RUN
-    measures any run). Asserted floors: lit ≥ 15 dB, albedo ≥ 24 dB.
+    measures any run). Since the occupancy grid keeps thin density and the background starts from the border colour
+    (issue 16), the 160-step field holds more fog and the albedo agreement measured 23.0-24.0 dB (2026-11-26).
+    Asserted floors: lit ≥ 15 dB, albedo ≥ 22 dB.
     """
     from toolkit.metrics import psnr
     from toolkit.pinhole import PinholeCamera
@@ -562,4 +564,4 @@ def test_baked_sample_matches_the_field_render(tmp_path_factory, gl):
     print(f"\n[baked vs field after {SAMPLE_STEPS} steps] lit PSNR {np.round(lit_db, 2)} dB, albedo PSNR "
           f"{np.round(albedo_db, 2)} dB")
     assert np.mean(lit_db) >= 15.0, f"lit PSNR {lit_db}"
-    assert np.mean(albedo_db) >= 24.0, f"albedo PSNR {albedo_db}"
+    assert np.mean(albedo_db) >= 22.0, f"albedo PSNR {albedo_db}"
