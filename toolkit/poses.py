@@ -51,7 +51,7 @@ import numpy as np
 
 from ._checks import ConfigError, DarsError, check_choice, check_range
 from .outputs import MANIFEST
-from .upright import UprightConfig, estimate_world_up, rotation_between
+from .upright import PLANE_MAX_REPROJ_PX, UprightConfig, estimate_world_up, rotation_between
 
 __all__ = [
     "PosesConfig",
@@ -846,7 +846,7 @@ def _pose_pipeline(pycolmap, photos_dir: Path, out_dir: Path, names: list[str], 
     transform = np.eye(4)
     up_from = "none"
     if cfg.upright:
-        good = err < 4.0  # px: drop badly triangulated points before the plane fit
+        good = err < PLANE_MAX_REPROJ_PX  # drop badly triangulated points before the plane fit
         up = estimate_world_up(c2w, xyz[good] if good.sum() >= 3 else None, cfg.upright_cfg)
         transform[:3, :3] = rotation_between(up.up, [0.0, 0.0, 1.0])
         up_from = up.source

@@ -40,6 +40,7 @@ import torch
 from ._checks import SceneError, check_rigid_pose
 from .cameras import Cameras, RayBundle, generate_rays, intersect_aabb, project_points
 from .io import read_image, read_map
+from .upright import PLANE_MAX_REPROJ_PX, plan_upright_rotation
 
 __all__ = [
     "Cameras",
@@ -597,8 +598,6 @@ def _plan_upright(upright: str, c2w_all: np.ndarray, points: np.ndarray | None =
     if upright == "off" or kept is not None or len(c2w_all) == 0:
         return {"rotation": np.eye(3).tolist(), "tilt_deg": None, "source": None, "applied": False,
                 "kept": "upright='off'" if upright == "off" else kept or "no valid poses"}
-    from .upright import plan_upright_rotation
-
     return plan_upright_rotation(c2w_all, points)
 
 
@@ -934,7 +933,7 @@ def _load_colmap(path: Path, split: str, test_every: int, bg, downscale: int, di
         rows = [ln.split() for ln in pts.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
         xyz = np.array([[float(v) for v in r[1:4]] for r in rows]).reshape(-1, 3)
         err = np.array([float(r[7]) if len(r) > 7 else 0.0 for r in rows])
-    good = np.isfinite(xyz).all(1) & (err < 4.0)  # px, as dars poses: badly triangulated points off the plane fit
+    good = np.isfinite(xyz).all(1) & (err < PLANE_MAX_REPROJ_PX)  # as dars poses: badly triangulated points
     record = _plan_upright(upright, np.stack(bounds_c2w) if bounds_c2w else np.zeros((0, 4, 4)),
                            xyz[good] if good.sum() >= 3 else None)
     meta["upright"] = record

@@ -46,6 +46,7 @@ __all__ = [
     "upright_rotation",
     "rotation_between",
     "LOAD_TILT_TOLERANCE_DEG",
+    "PLANE_MAX_REPROJ_PX",
     "plan_upright_rotation",
     "align_similarity",
     "compare_poses",
@@ -248,6 +249,10 @@ def upright_rotation(c2w, points=None, cfg: UprightConfig = UprightConfig()) -> 
     """
     return rotation_between(estimate_world_up(c2w, points, cfg).up, [0.0, 0.0, 1.0])
 
+
+PLANE_MAX_REPROJ_PX = 4.0
+"""Sparse points with a larger reprojection error (pixels) are left out of the plane fit of :func:`estimate_world_up`
+(badly triangulated points lie off the floor): ``dars poses`` and the COLMAP loader drop them alike."""
 
 LOAD_TILT_TOLERANCE_DEG = 2.0
 """Smallest estimated tilt (degrees) at which :func:`toolkit.scene.load_scene` rotates a scene upright.

@@ -127,9 +127,9 @@ def _variant_list(text: str) -> list[str]:
     return names
 
 
-def flat_variants(values: list) -> list[str]:
+def flat_variants(values: list[list[str]]) -> list[str]:
     """``--variants full,no-dars`` and ``--variants full no_dars`` alike: one flat list, each name once, in order."""
-    return list(dict.fromkeys(v for part in values for v in (part if isinstance(part, list) else [part])))
+    return list(dict.fromkeys(v for part in values for v in part))
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:

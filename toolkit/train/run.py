@@ -70,7 +70,7 @@ class Run:
     @property
     def downscale(self) -> int:
         """The factor the run's photos were shrunk by (``dars train --downscale``; 1 for runs written before it)."""
-        return int(self.meta.get("downscale", 1))
+        return run_scene_options(self.meta)["downscale"]
 
     def load_split(self, split: str) -> Scene:
         """Split ``split`` of the run's scene at the run's image size and in its frame (``downscale``, ``upright``)."""
