@@ -37,7 +37,9 @@ def evaluate_on_scene(model, scene_path: Path, train_mean_sh) -> dict | None:
     """Env-light L2 of the mean prediction over each split of a scene with GT SH (None without the scene)."""
     import torch
 
+    from toolkit.io import srgb_to_linear
     from toolkit.lightnet import aggregate_sh, mean_colour_sh, predict_sh
+    from toolkit.train import grey_ambient_sh
     from toolkit.metrics import env_light_l2
     from toolkit.scene import list_splits, load_scene
 
@@ -58,6 +60,8 @@ def evaluate_on_scene(model, scene_path: Path, train_mean_sh) -> dict | None:
             "network_per_image": float(env_light_l2(per, gt[None].expand_as(per)).mean()),
             "train_mean_sh": float(env_light_l2(train_mean_sh.float(), gt)),
             "mean_colour": float(env_light_l2(aggregate_sh(mean_colour_sh(imgs)), gt)),
+            "grey_ambient": float(env_light_l2(grey_ambient_sh(float(srgb_to_linear(imgs).mean())), gt)),
+            "zero_light": float(gt.norm()),
         }
     return out
 
@@ -65,6 +69,17 @@ def evaluate_on_scene(model, scene_path: Path, train_mean_sh) -> dict | None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=str(DEFAULT_DATA), help=f"data set from samples/render_lightings.py (default {DEFAULT_DATA})")
+    ap.add_argument("--galleries", nargs="+", default=None, metavar="DIR",
+                    help="train on rendered galleries instead of --data: profile folders (their seed_<N>/ with a "
+                         "stamp.json) or gallery folders (samples/galleries.py)")
+    ap.add_argument("--holdout-probes", nargs="*", default=["pisa"], metavar="PROBE",
+                    help="with --galleries: galleries lit by these HDR probes are held out (default: pisa)")
+    ap.add_argument("--heldout-galleries", nargs="*", default=[], metavar="DIR",
+                    help="with --galleries: galleries held out as a whole (e.g. the validation profile's)")
+    ap.add_argument("--max-galleries", type=int, default=None, metavar="N",
+                    help="with --galleries: use only the first N training galleries (by seed) of the profile folders")
+    ap.add_argument("--mix-data", action="store_true",
+                    help="with --galleries: also train on --data (the sample room under many lightings)")
     ap.add_argument("--arch", default="small", choices=["small", "resnet18", "resnet34"])
     ap.add_argument("--steps", type=int, default=4000)
     ap.add_argument("--batch-size", type=int, default=32)
@@ -90,11 +105,24 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(args.threads)
     from toolkit._checks import DarsError
-    from toolkit.lightnet import (TrainLightNetConfig, evaluate_lightnet, lightnet_config, load_light_dataset,
+    from toolkit.lightnet import (LightDataset, TrainLightNetConfig, concat_light_datasets, evaluate_lightnet,
+                                  gallery_dirs, light_dataset_from_galleries, lightnet_config, load_light_dataset,
                                   save_lightnet, train_lightnet)
 
     try:
-        ds = load_light_dataset(args.data)
+        if args.galleries:
+            dirs = gallery_dirs(*args.galleries)
+            held = {Path(d).resolve() for d in args.heldout_galleries}
+            dirs = [d for d in dirs if d.resolve() not in held][:args.max_galleries]
+            ds = light_dataset_from_galleries(dirs, 64, tuple(args.holdout_probes), tuple(args.heldout_galleries),
+                                              progress=not args.json)
+            if args.mix_data:
+                room = load_light_dataset(args.data)
+                room = LightDataset(room.radiance, room.sh, room.lighting, room.test,
+                                    tuple(f"room/{x}" for x in room.sources), room.meta)
+                ds = concat_light_datasets(ds, room)
+        else:
+            ds = load_light_dataset(args.data)
     except DarsError as e:
         print(f"bench_lightnet: error: {e}", file=sys.stderr)
         return 2
@@ -112,16 +140,28 @@ def main(argv=None) -> int:
         extra = load_light_dataset(args.eval_data)
         ev_extra = evaluate_lightnet(model, extra.split("test"), hist.train_mean_sh)
     cmd = "bench/bench_lightnet.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    gal = ds.meta.get("galleries") or next((m.get("galleries") for m in ds.meta.get("parts", []) if m.get("galleries")), None)
+    gal_fig = None if gal is None else {
+        "roots": args.galleries, "galleries": len(gal),
+        "render_command": "samples/galleries.py --profile P --seeds S per profile " + str(sorted({g["profile"] for g in gal})), "holdout_probes": args.holdout_probes,
+        "heldout_galleries": args.heldout_galleries, "mix_data": args.data if args.mix_data else None,
+        "train_seeds_by_probe": {p: sorted(g["seed"] for g in gal if g["probe"] == p and not g["heldout"])
+                                 for p in sorted({g["probe"] for g in gal})},
+        "heldout_seeds_by_source": {s: sorted(g["seed"] for g in gal if g["source"] == s and g["heldout"])
+                                    for s in sorted({g["source"] for g in gal if g["heldout"]})},
+        "units": "radiance = the frames' linear .hdr (exposure baked into the light powers), area-averaged to 64 px; "
+                 "sh = transforms 'sh' (same units: SH of light.hdr agrees within 2 %; PNG = sRGB(clip(hdr)) within 8-bit noise)"}
     figures = {
         "command": cmd,
-        "data": {"path": str(args.data), "command": ds.meta.get("command"), "views": len(ds), "train_views": len(train),
+        "galleries": gal_fig,
+        "data": {"path": str(args.data) if not args.galleries or args.mix_data else None, "command": ds.meta.get("command"), "views": len(ds), "train_views": len(train),
                  "test_views": len(test), "train_lightings": int(train.lighting.unique().numel()),
                  "test_lightings": int(test.lighting.unique().numel()), "render_seconds": ds.meta.get("seconds"),
-                 "size": ds.meta.get("size"), "spp": ds.meta.get("spp"), "holdout": ds.meta.get("plan", {}).get("holdout_probe")},
+                 "size": ds.meta.get("size"), "spp": ds.meta.get("spp"), "holdout": ds.meta.get("plan", {}).get("holdout_probe") if not args.galleries else args.holdout_probes},
         "arch": asdict(model.cfg), "parameters": model.num_parameters(), "train_seconds": round(hist.seconds, 1),
         "train_config": {k: v for k, v in asdict(cfg).items() if k != "arch"},
         "final_loss": float(sum(hist.losses[-100:]) / max(len(hist.losses[-100:]), 1)),
-        "heldout": ev.to_json(), "train": {k: getattr(ev_train, k) for k in ("network", "train_mean_sh", "mean_colour")},
+        "heldout": ev.to_json(), "train": {k: getattr(ev_train, k) for k in ("network", "train_mean_sh", "mean_colour", "grey_ambient", "zero_light")},
         "sample": sample,
         "eval_data": None if ev_extra is None else {"path": str(args.eval_data), "command": extra.meta.get("command"),
                                                     **ev_extra.to_json()},
@@ -146,12 +186,17 @@ def main(argv=None) -> int:
     print(f"\nEnv-light L2 on held-out lightings ({ev.images} images, {ev.lightings} lightings), lower is better:")
     rows = [("network (per image)", ev.network), ("network (mean over a lighting's views)", ev.network_per_lighting),
             ("baseline (a) training-set mean SH", ev.train_mean_sh), ("baseline (b) image mean colour", ev.mean_colour),
-            ("trainer's grey ambient (2x (b))", ev.grey_ambient)]
+            ("trainer's grey ambient (2x (b))", ev.grey_ambient), ("zero light", ev.zero_light)]
     for name, v in rows:
         print(f"  {name:<42} {v:8.4f}   x{v / ev.network:5.2f} of the network's")
-    print("  per source: " + "; ".join(f"{s} ({d['images']} img): net {d['network']:.3f}, (a) {d['train_mean_sh']:.3f}, "
-                                       f"(b) {d['mean_colour']:.3f}" for s, d in ev.per_source.items()))
-    print(f"  training views: net {ev_train.network:.4f}, (a) {ev_train.train_mean_sh:.4f}, (b) {ev_train.mean_colour:.4f}")
+    print(f"  {'source':<16}{'img':>5}{'light':>6}{'net':>8}{'net/lt':>8}{'zero':>8}{'grey':>8}{'(b)':>8}{'(a)':>8}"
+          f"{'net/grey':>9}")
+    for s, d in ev.per_source.items():
+        print(f"  {s:<16}{d['images']:>5}{d['lightings']:>6}{d['network']:8.3f}{d['network_per_lighting']:8.3f}"
+              f"{d['zero_light']:8.3f}{d['grey_ambient']:8.3f}{d['mean_colour']:8.3f}{d['train_mean_sh']:8.3f}"
+              f"{d['network'] / d['grey_ambient']:9.2f}")
+    print(f"  training views: net {ev_train.network:.4f}, (a) {ev_train.train_mean_sh:.4f}, (b) {ev_train.mean_colour:.4f}, "
+          f"grey {ev_train.grey_ambient:.4f}, zero {ev_train.zero_light:.4f}")
     if ev_extra is not None:
         print(f"\nEnv-light L2 on the held-out lightings of {args.eval_data} ({ev_extra.images} images, "
               f"{ev_extra.lightings} lightings): network {ev_extra.network:.4f} (per lighting "
@@ -164,7 +209,7 @@ def main(argv=None) -> int:
         for split, d in sample.items():
             print(f"sample {args.sample} [{split}, {d['views']} views]: net mean {d['network_mean']:.4f}, median "
                   f"{d['network_median']:.4f}, per image {d['network_per_image']:.4f}; (a) {d['train_mean_sh']:.4f}, "
-                  f"(b) {d['mean_colour']:.4f}")
+                  f"(b) {d['mean_colour']:.4f}, grey {d['grey_ambient']:.4f}, zero {d['zero_light']:.4f}")
     if args.save:
         print(f"wrote {figures['weights']['path']} ({figures['weights']['bytes'] / 1e6:.2f} MB) and "
               f"{Path(args.save).with_suffix('.json')}")

@@ -364,3 +364,47 @@ def test_environment_swap_matches_a_fresh_scene_and_the_samples_gt():
     assert d["emitter"] < 1e-4 and d["render"] < 1e-4, d
     if not math.isnan(d["sample_sh"]):
         assert d["sample_sh"] < 1e-5, d
+
+
+def _fake_gallery(root: Path, seed: int, probe: str, n: int = 2, stamp: bool = True) -> Path:
+    from toolkit.io import write_hdr
+
+    d = root / f"seed_{seed}"
+    (d / "train").mkdir(parents=True)
+    frames = []
+    for i in range(n):
+        write_hdr(d / "train" / f"r_{i:03d}.hdr", np.full((20, 20, 3), 0.1 * (i + 1), np.float32))
+        frames.append({"file_path": f"train/r_{i:03d}.png", "radiance_path": f"train/r_{i:03d}.hdr",
+                       "transform_matrix": np.eye(4).tolist()})
+    sh = np.zeros((9, 3))
+    sh[0] = seed + 1.0
+    (d / "transforms_train.json").write_text(json.dumps(
+        {"sh": sh.tolist(), "frames": frames, "render": {"env": f"probulator_{probe}_256x128.hdr", "gallery_seed": seed,
+                                                         "profile": "prior"}}))
+    if stamp:
+        (d / "stamp.json").write_text("{}")
+    return d
+
+
+def test_light_dataset_from_galleries(tmp_path):
+    from toolkit.lightnet import concat_light_datasets, gallery_dirs, light_dataset_from_galleries
+
+    prof = tmp_path / "prior"
+    _fake_gallery(prof, 0, "pisa")
+    _fake_gallery(prof, 2, "grace_new")
+    _fake_gallery(prof, 10, "wells")
+    _fake_gallery(prof, 3, "wells", stamp=False)  # still rendering: skipped
+    val = _fake_gallery(tmp_path / "validation", 7, "wells", n=3)
+    dirs = gallery_dirs(prof)
+    assert [d.name for d in dirs] == ["seed_0", "seed_2", "seed_10"]
+    ds = light_dataset_from_galleries(dirs, size=8, holdout_probes=("pisa",), heldout_galleries=(val,))
+    assert ds.radiance.shape == (9, 3, 8, 8) and ds.sh.shape == (9, 9, 3)
+    assert math.isclose(float(ds.radiance[1].mean()), 0.2, rel_tol=1e-2)  # linear .hdr, no exposure factor
+    assert ds.sources == ("pisa", "grace_new", "wells", "seed_7")
+    assert ds.test.tolist() == [True, True, False, False, False, False, True, True, True]
+    assert float(ds.sh[2, 0, 0]) == 3.0 and float(ds.sh[-1, 0, 0]) == 8.0
+    assert sorted(set(ds.split("test").source_of())) == ["pisa", "seed_7"]
+    both = concat_light_datasets(ds, ds)
+    assert len(both) == 18 and both.lighting.max() == 7 and both.sources == ds.sources * 2
+    with pytest.raises(LightNetError, match="not found"):
+        gallery_dirs(tmp_path / "nope")

@@ -83,6 +83,9 @@ __all__ = [
     "logits_from_sh",
     "LightDataset",
     "load_light_dataset",
+    "gallery_dirs",
+    "light_dataset_from_galleries",
+    "concat_light_datasets",
     "TrainLightNetConfig",
     "LightNetHistory",
     "train_lightnet",
@@ -346,6 +349,126 @@ def load_light_dataset(path: str | os.PathLike) -> LightDataset:
                         sources=tuple(str(s) for s in d.get("sources", [])), meta=meta)
 
 
+def gallery_dirs(*roots: str | os.PathLike) -> list[Path]:
+    """Finished galleries under ``roots``: each root is a gallery (it has ``transforms_train.json``) or a profile
+    folder whose ``seed_<N>`` sub-folders are galleries; only those with a ``stamp.json`` (written last by
+    ``samples/galleries.py``) count. Sorted by seed. Raises LightNetError when a root is neither."""
+    out: list[Path] = []
+    for r in roots:
+        r = Path(r).expanduser()
+        if (r / "transforms_train.json").is_file():
+            out.append(r)
+            continue
+        if not r.is_dir():
+            raise LightNetError(f"gallery folder not found: {r}")
+        subs = [d for d in r.glob("seed_*") if (d / "stamp.json").is_file() and (d / "transforms_train.json").is_file()]
+        out += sorted(subs, key=lambda d: int(d.name[5:]) if d.name[5:].isdigit() else -1)
+    return out
+
+
+def _probe_name(env: str) -> str:
+    """``probulator_pisa_256x128.hdr`` → ``pisa``."""
+    stem = Path(str(env)).name.split(".")[0]
+    parts = stem.split("_")
+    if parts[0] == "probulator" and len(parts) >= 3:
+        return "_".join(parts[1:-1])
+    return stem
+
+
+def light_dataset_from_galleries(dirs: list[str | os.PathLike], size: int = 64, holdout_probes: tuple[str, ...] = (),
+                                 heldout_galleries: tuple[str | os.PathLike, ...] = (),
+                                 splits: tuple[str, ...] = ("train", "test"), progress: bool = False) -> LightDataset:
+    """Views of rendered galleries (``samples/galleries.py``) as a :class:`LightDataset`: one lighting per gallery.
+
+    Per gallery, every frame of ``splits`` is read from its linear ``radiance_path`` (.hdr), area-averaged in linear
+    light to ``size`` x ``size`` (the network's input; the 8-bit ``file_path`` PNG is sRGB(clip(radiance)) quantised),
+    and paired with the gallery's top-level ``sh`` (SPEC SH of the incident radiance at the room centre). Units: the
+    generator bakes its exposure into the light powers (``render.exposure.env_scale`` / ``lamp_scale``), so radiance
+    and ``sh`` are already in the photo's units — unlike ``samples/render_lightings.py`` data, nothing is multiplied
+    (a sample scene's ``render.exposure`` number is likewise already applied to its .hdr and ``sh``).
+
+    The lighting source of a gallery is its HDR probe (``render.env``, e.g. ``pisa``); galleries listed in
+    ``heldout_galleries`` (matched by resolved path) are labelled by their folder name instead. Views are held out
+    (``test``) when their gallery is in ``heldout_galleries`` or its probe is in ``holdout_probes``.
+
+    Args:
+        dirs: gallery folders (see :func:`gallery_dirs`); ``heldout_galleries`` are added if missing.
+        size: output resolution.
+        holdout_probes: probe names (``pisa``, ``ennis``, ``grace_new``, ``wells``) whose galleries are held out.
+        heldout_galleries: galleries held out as a whole.
+        splits: which transforms files to read per gallery.
+        progress: a tqdm bar on stderr.
+
+    Returns:
+        LightDataset with ``meta["galleries"]``: per gallery path, seed, probe, source, views, held out.
+
+    Raises:
+        LightNetError: no galleries, a gallery without ``sh`` or frames, or unreadable files.
+    """
+    from .io import read_hdr, read_json
+
+    held = [Path(d).expanduser().resolve() for d in heldout_galleries]
+    all_dirs = [Path(d).expanduser().resolve() for d in dirs]
+    all_dirs += [d for d in held if d not in all_dirs]
+    if not all_dirs:
+        raise LightNetError("light_dataset_from_galleries: no galleries (render some with samples/galleries.py)")
+    rads, shs, light, test, sources, info = [], [], [], [], [], []
+    it = all_dirs
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(all_dirs, desc="read galleries", file=sys.stderr, leave=False)
+    for gi, d in enumerate(it):
+        metas = [read_json(d / f"transforms_{s}.json", "gallery transforms") for s in splits
+                 if (d / f"transforms_{s}.json").is_file()]
+        if not metas or metas[0].get("sh") is None:
+            raise LightNetError(f"{d}: no transforms with a top-level 'sh' (not a rendered gallery?)")
+        sh = torch.tensor(metas[0]["sh"], dtype=torch.float32)
+        check_shape(sh, "9 3", f"{d} sh")
+        probe = _probe_name(metas[0].get("render", {}).get("env", "?"))
+        source = d.name if d in held else probe
+        n0 = len(rads)
+        for m in metas:
+            for f in m.get("frames", []):
+                if not f.get("radiance_path"):
+                    raise LightNetError(f"{d}: frame {f.get('file_path')} has no radiance_path (linear .hdr)")
+                r = torch.from_numpy(read_hdr(d / f["radiance_path"])).permute(2, 0, 1)[None]
+                rads.append(F.adaptive_avg_pool2d(r, (size, size))[0] if r.shape[-2:] != (size, size) else r[0])
+        nv = len(rads) - n0
+        if nv == 0:
+            raise LightNetError(f"{d}: no frames in {splits}")
+        is_test = d in held or probe in holdout_probes
+        shs += [sh] * nv
+        light += [gi] * nv
+        test += [is_test] * nv
+        sources.append(source)
+        info.append({"path": str(d), "seed": metas[0].get("render", {}).get("gallery_seed"),
+                     "profile": metas[0].get("render", {}).get("profile"), "probe": probe,
+                     "source": source, "views": nv, "heldout": is_test})
+    return LightDataset(radiance=torch.stack(rads).float().contiguous(), sh=torch.stack(shs), lighting=torch.tensor(light),
+                        test=torch.tensor(test), sources=tuple(sources),
+                        meta={"galleries": info, "size": size, "holdout_probes": list(holdout_probes),
+                              "heldout_galleries": [str(d) for d in held]})
+
+
+def concat_light_datasets(*datasets: LightDataset) -> LightDataset:
+    """One :class:`LightDataset` from several of the same image size (lighting indices renumbered, sources kept)."""
+    if not datasets:
+        raise LightNetError("concat_light_datasets: nothing to concatenate")
+    sizes = {tuple(d.radiance.shape[-2:]) for d in datasets}
+    if len(sizes) > 1:
+        raise LightNetError(f"concat_light_datasets: image sizes differ {sorted(sizes)}")
+    light, sources, off = [], [], 0
+    for d in datasets:
+        n_l = max(len(d.sources), int(d.lighting.max()) + 1 if len(d) else 0)
+        light.append(d.lighting + off)
+        sources += [d.sources[i] if i < len(d.sources) else "?" for i in range(n_l)]
+        off += n_l
+    return LightDataset(torch.cat([d.radiance for d in datasets]), torch.cat([d.sh for d in datasets]),
+                        torch.cat(light), torch.cat([d.test for d in datasets]), tuple(sources),
+                        {"parts": [d.meta for d in datasets]})
+
+
 # ============================================================================ training
 @dataclass(frozen=True)
 class TrainLightNetConfig:
@@ -569,9 +692,11 @@ class LightNetEvaluation:
             light`` does for a scene), mean over lightings.
         train_mean_sh: baseline (a), the training-set mean SH.
         mean_colour: baseline (b), :func:`mean_colour_sh`.
+        zero_light: predicting no light at all (``‖gt‖``).
         grey_ambient: the trainer's default without a light prior (``toolkit.train.grey_ambient_sh``: twice
             baseline (b)'s grey level, i.e. an albedo-0.5 assumption), for reference.
-        per_source: per lighting source (``pisa``, ``sky``...), the network's and baselines' means.
+        per_source: per lighting source (``pisa``, ``sky``...), the network's and baselines' means over images, and
+            ``network_per_lighting`` over that source's lightings.
         images, lightings: how many were evaluated.
     """
 
@@ -580,6 +705,7 @@ class LightNetEvaluation:
     train_mean_sh: float
     mean_colour: float
     grey_ambient: float
+    zero_light: float
     per_source: dict[str, dict[str, float]]
     images: int
     lightings: int
@@ -604,15 +730,20 @@ def evaluate_lightnet(model: LightNet, dataset: LightDataset, train_mean_sh: tor
     grey = torch.zeros_like(gt)
     grey[:, 0] = (2.0 * lin_mean / 0.282095)[:, None]
     errs = {"network": env_light_l2(pred, gt), "train_mean_sh": env_light_l2(base_a, gt),
-            "mean_colour": env_light_l2(base_b, gt), "grey_ambient": env_light_l2(grey, gt)}
+            "mean_colour": env_light_l2(base_b, gt), "grey_ambient": env_light_l2(grey, gt),
+            "zero_light": env_light_l2(torch.zeros_like(gt), gt)}
     lights = dataset.lighting.unique()
     per_l = torch.stack([env_light_l2(pred[dataset.lighting == l].mean(0), gt[dataset.lighting == l][0]) for l in lights])
     src = np.array(dataset.source_of())
-    per_source = {s: {k: float(v[torch.from_numpy(src == s)].mean()) for k, v in errs.items()} | {"images": int((src == s).sum())}
+    src_l = np.array([dataset.sources[l] if l < len(dataset.sources) else "?" for l in lights.tolist()])
+    per_source = {s: {k: float(v[torch.from_numpy(src == s)].mean()) for k, v in errs.items()}
+                  | {"network_per_lighting": float(per_l[torch.from_numpy(src_l == s)].mean()),
+                     "images": int((src == s).sum()), "lightings": int((src_l == s).sum())}
                   for s in sorted(set(src.tolist()))}
     return LightNetEvaluation(network=float(errs["network"].mean()), network_per_lighting=float(per_l.mean()),
                               train_mean_sh=float(errs["train_mean_sh"].mean()), mean_colour=float(errs["mean_colour"].mean()),
-                              grey_ambient=float(errs["grey_ambient"].mean()), per_source=per_source,
+                              grey_ambient=float(errs["grey_ambient"].mean()),
+                              zero_light=float(errs["zero_light"].mean()), per_source=per_source,
                               images=len(dataset), lightings=int(len(lights)))
 
 
