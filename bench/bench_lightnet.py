@@ -14,6 +14,10 @@ Usage (1 thread; the data set is cached outside the repo)::
         --suns 0 --out ~/.cache/dars/lightnet/gallery_heldout_s1.npz      # a second, untouched held-out set
     OMP_NUM_THREADS=1 .venv/bin/python bench/bench_lightnet.py --arch small --save toolkit/weights/lightnet_small.pt \
         --eval-data ~/.cache/dars/lightnet/gallery_heldout_s1.npz
+    # the shipped weights: procedural galleries, the pisa probe and the two validation galleries held out
+    OMP_NUM_THREADS=1 .venv/bin/python bench/bench_lightnet.py --galleries ~/.cache/dars/galleries/prior \
+        --heldout-galleries ~/.cache/dars/galleries/validation/seed_1000000 ~/.cache/dars/galleries/validation/seed_1000001 \
+        --holdout-probes pisa --save toolkit/weights/lightnet_small.pt
     # the paper's network (hours on one CPU core; minutes on a GPU):
     .venv/bin/python bench/bench_lightnet.py --arch resnet34 --steps 8000 --save /tmp/lightnet_resnet34.pt
 """
@@ -84,6 +88,7 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=4000)
     ap.add_argument("--batch-size", type=int, default=32)
     ap.add_argument("--lr", type=float, default=2e-3)
+    ap.add_argument("--weight-decay", type=float, default=0.0)
     ap.add_argument("--exposure-jitter", type=float, default=0.5)
     ap.add_argument("--shift-px", type=int, default=3)
     ap.add_argument("--loss", default="huber", choices=["l2", "huber"])
@@ -128,7 +133,7 @@ def main(argv=None) -> int:
         return 2
     train, test = ds.split("train"), ds.split("test")
     over = ({"output_range": args.output_range} if args.output_range else {}) | ({"dc_max": args.dc_max} if args.dc_max is not None else {})
-    cfg = TrainLightNetConfig(arch=lightnet_config(args.arch, **over), loss=args.loss, huber_delta=args.huber_delta, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
+    cfg = TrainLightNetConfig(arch=lightnet_config(args.arch, **over), loss=args.loss, huber_delta=args.huber_delta, steps=args.steps, batch_size=args.batch_size, lr=args.lr, weight_decay=args.weight_decay,
                               exposure_jitter=args.exposure_jitter, shift_px=args.shift_px, seed=args.seed)
     t0 = time.time()
     model, hist = train_lightnet(ds, cfg)

@@ -32,16 +32,18 @@ Output range (:func:`sh_from_logits`), per colour channel:
   (attained by Y_l0 at the poles), so every non-negative environment lies inside the range (necessary, not
   sufficient: some outputs in range still dip below zero somewhere).
 
-Limit — the world frame: a network sees one photo from an unknown pose but must answer in world coordinates. It can
-only do that for a room whose layout it has learnt (here the gallery sample, rendered under many lightings with the
-sample's camera distribution: the pose is readable from the picture). On another room both parts extrapolate: the
-direction-dependent bands 1-2 because the pose can no longer be read, the DC gain because it encodes this room's
-albedos. Retrain on renders of the target room for a real prior; the trainer's alternating light optimisation
-(eq. 22) refines ``l_env`` from all views either way.
+Limit — the world frame: a network sees one photo from an unknown pose but must answer in world coordinates. Trained
+on one room (``samples/render_lightings.py``: the gallery sample under many lightings) it reads the pose from the
+picture and the DC gain from that room's albedos, and both extrapolate badly to another room. The shipped weights are
+therefore trained on many procedural galleries (:func:`light_dataset_from_galleries`: rooms, albedos, lamps and probe
+rotations all vary; one lighting per gallery), which trades accuracy on the sample room for generalisation; their
+held-out figures per lighting source are in ``toolkit/weights/lightnet_small.json``. The trainer's alternating light
+optimisation (eq. 22) refines ``l_env`` from all views either way.
 
-Training data: ``samples/render_lightings.py`` (Mitsuba, seeded, cached outside the repo) → :func:`load_light_dataset`;
-:func:`train_lightnet` fits it (Adam, L2 on the 27 coefficients, Huber-robust per view); ``bench/bench_lightnet.py``
-trains, evaluates on held-out lightings against two baselines (:func:`evaluate_lightnet`) and writes the shipped
+Training data: rendered galleries (``samples/galleries.py``) → :func:`light_dataset_from_galleries`, or
+``samples/render_lightings.py`` (Mitsuba, seeded, cached outside the repo) → :func:`load_light_dataset`;
+:func:`train_lightnet` fits them (Adam, L2 on the 27 coefficients, Huber-robust per view); ``bench/bench_lightnet.py``
+trains, evaluates on held-out lightings against the baselines (:func:`evaluate_lightnet`) and writes the shipped
 weights with their command and figures (``toolkit/weights/lightnet_small.json``).
 
 Example:
