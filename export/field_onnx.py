@@ -364,13 +364,15 @@ def _op_types(path: Path) -> dict[str, int]:
 
 
 def _export_segmenter(run, out_dir: Path, opset: int, cfg: FieldExportConfig) -> dict:
-    pt = Path(cfg.segmenter) if cfg.segmenter else run.priors_dir("segment") / "segmenter.pt"
-    if not pt.is_file():
-        return {"status": "unavailable",
-                "reason": f"no trained built-in segmenter at {pt} (the run used provided labels or none); "
-                          "train one with `dars priors segment SCENE --backend builtin` and re-export"}
-    from toolkit.segment import load_segmenter
+    from toolkit.segment import DEFAULT_SEGMENTER, load_segmenter
 
+    pt = Path(cfg.segmenter) if cfg.segmenter else run.priors_dir("segment") / "segmenter.pt"
+    if not pt.is_file() and cfg.segmenter:
+        return {"status": "unavailable", "reason": f"--segmenter {pt}: file not found"}
+    if not pt.is_file():  # no network fine-tuned on this scene: the shipped one, which labelled its photos
+        pt = DEFAULT_SEGMENTER
+    if not pt.is_file():
+        return {"status": "unavailable", "reason": f"the shipped segmenter {pt} is missing from this installation"}
     net = load_segmenter(pt)
     h, w = run.train_scene.image_size
     rep = export_segmenter_onnx(net, out_dir / "segment.onnx", image_size=(min(h, 128), min(w, 128)), opset=opset)

@@ -776,11 +776,21 @@ def infer_segment(path: str | os.PathLike, photos: Sequence, threads: int | None
                          "`dars priors segment SCENE --backend builtin`, then re-run `dars export-onnx`)")
     sess = make_session(f, threads)
     name, sh_, sw_ = _image_input(sess)
+    try:
+        work = int((sess.get_modelmeta().custom_metadata_map or {}).get("dars.work_size", "0"))
+    except ValueError:
+        work = 0
     labels = []
     for ph in photos:
         img = read_photo(ph)
         H, W = img.shape[:2]
-        x = img if sh_ is None or sw_ is None else _resize(img, sh_, sw_)
+        if sh_ is not None and sw_ is not None:
+            x = _resize(img, sh_, sw_)
+        elif work > 0 and min(H, W) != work:  # the scale the network was trained at
+            k = work / min(H, W)
+            x = _resize(img, max(1, round(H * k)), max(1, round(W * k)))
+        else:
+            x = img
         logits = sess.run(None, {name: np.ascontiguousarray(x.transpose(2, 0, 1)[None], np.float32)})[0][0]
         lab = logits.argmax(0).astype(np.uint8)
         if lab.shape != (H, W):

@@ -283,7 +283,8 @@ def export_segmenter_onnx(model: torch.nn.Module, path: str | os.PathLike, image
     """Export :class:`toolkit.segment.Segmenter` with dynamic batch, height and width.
 
     The file follows the ``onnx`` backend contract of :mod:`toolkit.segment`: input ``images`` float32
-    N x 3 x H x W RGB (sRGB) in [0, 1], output ``logits`` N x 7 x H x W; metadata ``dars.kind=segmenter``,
+    N x 3 x H x W RGB (sRGB) in [0, 1], output ``logits`` N x 7 x H x W (then ``metal`` N x 1 x H x W, the metal
+    probability, for a network with a metal channel); metadata ``dars.kind=segmenter``, ``dars.work_size``,
     ``dars.classes``, ``dars.normalize=none``.
 
     Args:
@@ -298,15 +299,24 @@ def export_segmenter_onnx(model: torch.nn.Module, path: str | os.PathLike, image
     """
     from toolkit.scene import SEMANTIC_CLASSES
 
+    from toolkit.segment import SegmenterExport
+
     g = torch.Generator().manual_seed(0)
     example = torch.rand(2, 3, int(image_size[0]), int(image_size[1]), generator=g)
+    cfg = getattr(model, "cfg", None)
+    metal = bool(getattr(cfg, "metal", False))
     meta = {
         "dars.kind": "segmenter",
         "dars.classes": ",".join(SEMANTIC_CLASSES),
         "dars.normalize": "none",
-        "dars.input": "images: float32 N x 3 x H x W, RGB, sRGB-encoded, [0, 1]",
-        "dars.output": "logits: float32 N x 7 x H x W (argmax = class id)",
+        "dars.work_size": str(int(getattr(cfg, "work_size", 0) or 0)),
+        "dars.input": "images: float32 N x 3 x H x W, RGB, sRGB-encoded, [0, 1]; resize so the short side is "
+                      "dars.work_size (0: any size) and resize the outputs back",
+        "dars.output": "logits: float32 N x 7 x H x W (argmax = class id)"
+                       + ("; metal: float32 N x 1 x H x W, probability of metal (mask: > 0.5)" if metal else ""),
     }
-    return export_onnx(model, (example,), path, ["images"], ["logits"], dynamic_batch=True, opset=opset,
-                       metadata=meta, dynamic_axes={"images": {2: "height", 3: "width"},
-                                                    "logits": {2: "height", 3: "width"}}, tol=tol)
+    outs = ["logits", "metal"] if metal else ["logits"]
+    axes = {"images": {2: "height", 3: "width"}, **{o: {2: "height", 3: "width"} for o in outs}}
+    module = SegmenterExport(model) if hasattr(model, "split") else model
+    return export_onnx(module, (example,), path, ["images"], outs, dynamic_batch=True, opset=opset,
+                       metadata=meta, dynamic_axes=axes, tol=tol)

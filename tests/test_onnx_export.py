@@ -122,3 +122,22 @@ def test_segmenter_parity_dynamic_batch_and_size(tmp_path):
         ref = net.eval()(x).numpy()
     assert got.shape == (3, 7, 33, 71)
     assert np.abs(got - ref).max() <= 1e-4
+
+
+def test_shipped_segmenter_onnx_has_metal_and_work_size(tmp_path):
+    """The shipped segmenter exports its metal channel as a second output and its working scale as metadata; the
+    ``onnx`` backend (resizing to that scale) gives the torch backend's labels and metal mask."""
+    from toolkit.segment import SegmentConfig, load_segmenter, segment_images
+
+    net = load_segmenter()  # the shipped network
+    assert net.cfg.metal and net.cfg.work_size > 0
+    rep = export_segmenter_onnx(net, tmp_path / "seg.onnx", image_size=(48, 64))
+    assert rep.max_abs_err <= 1e-4, rep.errors
+    meta = read_onnx_metadata(rep.path)
+    assert meta["dars.work_size"] == str(net.cfg.work_size)
+    x = torch.rand(2, 3, 90, 120)
+    ref = segment_images(x, SegmentConfig(backend="builtin"), model=net)
+    got = segment_images(x, SegmentConfig(backend="onnx"), model=str(rep.path))
+    assert got.metal is not None and got.metal.shape == (2, 90, 120)
+    assert (got.labels == ref.labels).float().mean() > 0.999
+    assert (got.metal - ref.metal).abs().max() < 1e-3

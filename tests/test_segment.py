@@ -303,14 +303,22 @@ def _run(argv, capsys):
 
 def test_cli_segment_provided_and_builtin(tmp_path, capsys):
     scene = write_scene(tmp_path / "scene", n_train=6, n_test=3, size=40)
+    # default: the shipped network on the photos (labels are only scored), with a metal mask per frame
     rc, out, err = _run(["priors", "segment", str(scene)], capsys)
     assert rc == 0, err
     seg_dir = scene / "priors" / "segment"
-    assert (seg_dir / "train__r_000.png").is_file() and (seg_dir / "train__r_005_preview.png").is_file()
+    for f in ("train__r_000.png", "train__r_005_preview.png", "train__r_003_metal.png"):
+        assert (seg_dir / f).is_file(), f
     info = json.loads((seg_dir / "segment.json").read_text())
-    assert info["backend"] == "provided" and info["miou_heldout"] == 1.0
+    assert info["backend"] == "shipped" and info["model"].startswith("shipped") and info["metal_mask"] == "predicted"
+    assert 0.0 <= info["miou_heldout"] <= 1.0 and info["heldout_views"] == 6  # nothing trained on: all 6 scored
     man = json.loads((seg_dir / "dars_manifest.json").read_text())
     assert man["dars"] == "priors segment" and "segment.json" in man["files"]
+    # provided: the scene's own labels pass through
+    rc, out, err = _run(["priors", "segment", str(scene), "--backend", "provided", "--out", str(tmp_path / "p")], capsys)
+    assert rc == 0, err
+    info = json.loads((tmp_path / "p" / "segment.json").read_text())
+    assert info["backend"] == "provided" and info["miou_heldout"] == 1.0
 
     out_dir = tmp_path / "seg_builtin"
     rc, out, err = _run(["priors", "segment", str(scene), "--backend", "builtin", "--train-every", "2", "--steps", "20",
@@ -331,6 +339,6 @@ def test_cli_segment_provided_and_builtin(tmp_path, capsys):
 def test_cli_segment_errors(tmp_path, capsys):
     scene = write_scene(tmp_path / "scene", n_train=3, n_test=1, size=32, with_labels=False)
     rc, out, err = _run(["priors", "segment", str(scene), "--backend", "builtin", "--out", str(tmp_path / "o")], capsys)
-    assert rc == 2 and "no semantic_path labels" in err and "--model" in err
+    assert rc == 2 and "no semantic_path labels" in err and "shipped" in err
     rc, out, err = _run(["priors", "segment", str(scene), "--backend", "onnx", "--out", str(tmp_path / "o")], capsys)
     assert rc == 2 and "needs --model" in err

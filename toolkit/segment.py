@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -53,9 +53,14 @@ __all__ = [
     "segment_images",
     "train_segmenter",
     "mean_iou",
+    "metal_iou",
     "validate_labels",
     "save_segmenter",
     "load_segmenter",
+    "DEFAULT_SEGMENTER",
+    "SegmenterExport",
+    "shipped_segmenter_card",
+    "work_resolution",
 ]
 
 NUM_CLASSES = 7
@@ -63,6 +68,9 @@ IGNORE_INDEX = 255
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 _FORMAT = "dars-segmenter"
+DEFAULT_SEGMENTER = Path(__file__).resolve().parent / "weights" / "segmenter_small.pt"
+"""The shipped segmenter: 7 classes + metal mask, trained on procedural galleries (card: ``segmenter_small.json``,
+reproduced by ``bench/bench_segmenter.py``)."""
 
 
 class SegmentationError(DarsError):
@@ -100,11 +108,13 @@ class Segmentation:
         probabilities: float [B, 7, H, W] class probabilities (one-hot for provided labels, all zero where they are
             255; a softmax for the networks).
         backend: which backend produced them.
+        metal: float [B, H, W] probability that a pixel is metal (networks with a metal channel), else None.
     """
 
     labels: torch.Tensor
     probabilities: torch.Tensor
     backend: str
+    metal: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
@@ -119,17 +129,25 @@ class SegmenterConfig:
             bottleneck.
         groups: GroupNorm groups (must divide every width).
         num_classes: output classes (7 in the SPEC).
+        metal: one more output channel, the logit of the metal mask (eq. 4's and eq. 20's I_metal: metal frames,
+            bases and other objects).
+        work_size: the short side (pixels) photos are resized to before the network sees them, and the logits
+            resized back (the scale it was trained at; 0: as given). The shipped network uses 160.
     """
 
     widths: tuple[int, ...] = (16, 32, 64, 128)
     groups: int = 8
     num_classes: int = NUM_CLASSES
+    metal: bool = False
+    work_size: int = 0
 
     def __post_init__(self):
         if len(self.widths) < 2 or any(w < 1 for w in self.widths):
             raise ConfigError(f"widths={self.widths}: need at least two positive widths")
         if any(w % self.groups for w in self.widths):
             raise ConfigError(f"groups={self.groups} must divide every width in {self.widths}")
+        if self.work_size < 0:
+            raise ConfigError(f"work_size={self.work_size} must be >= 0 (0: the photos' own size)")
 
 
 @dataclass(frozen=True)
@@ -149,6 +167,11 @@ class TrainSegmenterConfig:
         colour_jitter: strength of the random brightness / contrast / per-channel gain / saturation jitter (0 = off).
         class_balance: weight the cross-entropy by inverse square-root class frequency (small classes such as
             frames and bases count more).
+        exposure_stops: random exposure change of up to this many stops (applied in linear light; 0 = off).
+        noise: largest standard deviation of the Gaussian sensor noise added (sRGB units; 0 = off).
+        blur: largest Gaussian blur sigma in pixels, applied to a third of the crops (0 = off).
+        jpeg: lowest JPEG quality a third of the crops are re-encoded at (0 = off; qualities up to 95).
+        metal_weight: weight of the metal mask's binary cross-entropy (networks with a metal channel, given masks).
         seed: seed of initialisation, sampling and augmentation.
         progress: show a tqdm bar on stderr.
     """
@@ -163,6 +186,11 @@ class TrainSegmenterConfig:
     hflip: bool = True
     colour_jitter: float = 0.2
     class_balance: bool = True
+    exposure_stops: float = 0.0
+    noise: float = 0.0
+    blur: float = 0.0
+    jpeg: int = 0
+    metal_weight: float = 1.0
     seed: int = 0
     progress: bool = False
 
@@ -185,7 +213,8 @@ def _block(cin: int, cout: int, groups: int) -> nn.Sequential:
 
 
 class Segmenter(nn.Module):
-    """A compact U-Net: images float [B, 3, H, W] in [0, 1] (sRGB) -> logits float [B, 7, H, W].
+    """A compact U-Net: images float [B, 3, H, W] in [0, 1] (sRGB) -> logits float [B, 7, H, W] (``[B, 8, H, W]``
+    with a metal channel: the 7 class logits, then the metal-mask logit; :meth:`split` separates them).
 
     Encoder: per level two 3x3 conv + GroupNorm + ReLU, 2x2 max-pooling between levels (rounding up, so any H, W
     works). Decoder (light, FPN-like, to keep CPU training to about a minute): a 1x1 projection of the coarser
@@ -207,7 +236,7 @@ class Segmenter(nn.Module):
         self.decoders = nn.ModuleList([
             nn.Sequential(nn.Conv2d(w[i], w[i], 3, padding=1, bias=False), nn.GroupNorm(g, w[i]), nn.ReLU(inplace=True))
             for i in reversed(range(len(w) - 1))])
-        self.head = nn.Conv2d(w[0], cfg.num_classes, 1)
+        self.head = nn.Conv2d(w[0], cfg.num_classes + int(cfg.metal), 1)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         x = images * 2.0 - 1.0
@@ -224,8 +253,34 @@ class Segmenter(nn.Module):
             x = dec(x + skip)
         return self.head(x)
 
+    def split(self, logits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(class logits [B, 7, H, W], metal logit [B, H, W] or None) of :meth:`forward`'s output."""
+        C = self.cfg.num_classes
+        return logits[:, :C], (logits[:, C] if self.cfg.metal else None)
+
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
+
+
+def work_resolution(H: int, W: int, work_size: int) -> tuple[int, int]:
+    """(h, w) a photo of H x W is resized to so its short side is ``work_size`` (aspect kept; 0: unchanged)."""
+    if work_size <= 0 or min(H, W) == work_size:
+        return H, W
+    s = work_size / min(H, W)
+    return max(1, round(H * s)), max(1, round(W * s))
+
+
+class SegmenterExport(nn.Module):
+    """The ONNX face of a :class:`Segmenter`: images -> (``logits`` [B, 7, H, W], ``metal`` [B, 1, H, W] probability
+    of metal); without a metal channel only ``logits``."""
+
+    def __init__(self, net: Segmenter):
+        super().__init__()
+        self.net = net
+
+    def forward(self, images: torch.Tensor):
+        logits, metal = self.net.split(self.net(images))
+        return logits if metal is None else (logits, torch.sigmoid(metal)[:, None])
 
 
 # ============================================================================ metrics and validation
@@ -270,6 +325,20 @@ def mean_iou(pred, target, num_classes: int = NUM_CLASSES, ignore: int = IGNORE_
     return miou, [float(v) for v in iou]
 
 
+def metal_iou(pred, target, labels=None, ignore: int = IGNORE_INDEX) -> float | None:
+    """IoU of a predicted metal mask against the true one (bool, any equal shapes), skipping pixels whose ``labels``
+    are ``ignore`` when given; None when neither mask has a metal pixel."""
+    p = torch.as_tensor(pred).bool().flatten()
+    t = torch.as_tensor(target).bool().flatten()
+    if p.shape != t.shape:
+        raise ShapeError(f"metal_iou: prediction has {p.numel()} pixels, target {t.numel()}")
+    if labels is not None:
+        keep = torch.as_tensor(labels).flatten() != ignore
+        p, t = p[keep], t[keep]
+    union = int((p | t).sum())
+    return None if union == 0 else int((p & t).sum()) / union
+
+
 def validate_labels(labels: torch.Tensor, shape: tuple[int, int, int] | None = None, name: str = "labels") -> torch.Tensor:
     """Check int [B, H, W] labels hold only 0-6 and 255; returns them as int64.
 
@@ -297,28 +366,71 @@ def _one_hot(labels: torch.Tensor, dtype) -> torch.Tensor:
 
 
 # ============================================================================ training
-def _augment(img: torch.Tensor, lab: torch.Tensor, cfg: TrainSegmenterConfig, g: torch.Generator):
-    """One augmented crop: img float [3, H, W], lab int64 [H, W] -> same shapes at crop size."""
+def _gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
+    r = max(1, int(math.ceil(2.5 * sigma)))
+    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=img.dtype) / sigma) ** 2)
+    k = (k / k.sum()).view(1, 1, 1, -1).expand(3, 1, 1, -1)
+    x = F.pad(img[None], (r, r, 0, 0), mode="replicate")
+    x = F.conv2d(x, k, groups=3)
+    x = F.pad(x, (0, 0, r, r), mode="replicate")
+    return F.conv2d(x, k.transpose(-1, -2), groups=3)[0]
+
+
+def _jpeg(img: torch.Tensor, quality: int) -> torch.Tensor:
+    import cv2
+
+    u8 = (img.permute(1, 2, 0).clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()[..., ::-1]
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(u8), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        return img
+    dec = cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1]
+    return torch.from_numpy(np.ascontiguousarray(dec)).permute(2, 0, 1).to(img.dtype) / 255.0
+
+
+def _photometric(img: torch.Tensor, cfg: TrainSegmenterConfig, g: torch.Generator) -> torch.Tensor:
+    """Camera effects a user's photos have and renders lack: exposure, blur, sensor noise, JPEG."""
+    from .io import linear_to_srgb, srgb_to_linear
+
+    u = lambda: float(torch.rand(1, generator=g))  # noqa: E731
+    if cfg.exposure_stops > 0:
+        k = 2.0 ** ((2 * u() - 1) * cfg.exposure_stops)
+        img = linear_to_srgb((srgb_to_linear(img) * k).clamp(0, 1))
+    if cfg.blur > 0 and u() < 1 / 3:
+        img = _gaussian_blur(img, 0.3 + u() * max(cfg.blur - 0.3, 0.0))
+    if cfg.noise > 0:
+        sd = u() * cfg.noise
+        img = img + sd * torch.randn(img.shape, generator=g, dtype=img.dtype)
+    img = img.clamp(0, 1)
+    if cfg.jpeg > 0 and u() < 1 / 3:
+        img = _jpeg(img, cfg.jpeg + int(u() * max(95 - cfg.jpeg, 0)))
+    return img
+
+
+def _augment(img: torch.Tensor, lab: torch.Tensor, cfg: TrainSegmenterConfig, g: torch.Generator,
+             metal: torch.Tensor | None = None):
+    """One augmented crop: img float [3, H, W], lab int64 [H, W] (metal int64 [H, W], 255 unlabelled, or None)
+    -> the same at crop size."""
     _, H, W = img.shape
+    maps = lab[None] if metal is None else torch.stack([lab, metal])
     lo, hi = cfg.scale_range
     s = math.exp(float(torch.empty(1).uniform_(math.log(lo), math.log(hi), generator=g)))
     if abs(s - 1.0) > 1e-3:
         nh, nw = max(8, round(H * s)), max(8, round(W * s))
         img = F.interpolate(img[None], size=(nh, nw), mode="bilinear", align_corners=False, antialias=s < 1)[0]
-        lab = F.interpolate(lab[None, None].float(), size=(nh, nw), mode="nearest")[0, 0].long()
+        maps = F.interpolate(maps[None].float(), size=(nh, nw), mode="nearest")[0].long()
         H, W = nh, nw
     if cfg.crop:
         c = cfg.crop
         if H < c or W < c:  # pad with ignore so every crop has the same size
             ph, pw = max(0, c - H), max(0, c - W)
             img = F.pad(img, (0, pw, 0, ph), value=0.0)
-            lab = F.pad(lab, (0, pw, 0, ph), value=IGNORE_INDEX)
+            maps = F.pad(maps, (0, pw, 0, ph), value=IGNORE_INDEX)
             H, W = img.shape[-2:]
         y = int(torch.randint(0, H - c + 1, (1,), generator=g))
         x = int(torch.randint(0, W - c + 1, (1,), generator=g))
-        img, lab = img[:, y:y + c, x:x + c], lab[y:y + c, x:x + c]
+        img, maps = img[:, y:y + c, x:x + c], maps[:, y:y + c, x:x + c]
     if cfg.hflip and float(torch.rand(1, generator=g)) < 0.5:
-        img, lab = img.flip(-1), lab.flip(-1)
+        img, maps = img.flip(-1), maps.flip(-1)
     j = cfg.colour_jitter
     if j > 0:
         r = lambda: 1.0 + j * (2 * float(torch.rand(1, generator=g)) - 1)  # noqa: E731
@@ -329,7 +441,8 @@ def _augment(img: torch.Tensor, lab: torch.Tensor, cfg: TrainSegmenterConfig, g:
         grey = img.mean(0, keepdim=True)
         img = (img - grey) * r() + grey  # saturation
         img = img.clamp(0, 1)
-    return img, lab
+    img = _photometric(img, cfg, g)
+    return img, maps[0], (maps[1] if metal is not None else None)
 
 
 def train_segmenter(
@@ -337,8 +450,11 @@ def train_segmenter(
     labels: torch.Tensor,
     cfg: TrainSegmenterConfig = TrainSegmenterConfig(),
     model: Segmenter | None = None,
+    metal: torch.Tensor | None = None,
 ) -> "SegmenterTraining":
-    """Train :class:`Segmenter` on labelled views with cross-entropy (``ignore_index=255``).
+    """Train :class:`Segmenter` on labelled views with cross-entropy (``ignore_index=255``), plus the binary
+    cross-entropy of the metal mask (weight ``cfg.metal_weight``) when the network has a metal channel and ``metal``
+    is given.
 
     Seeded and CPU-friendly: random rescaled crops, horizontal flips and colour jitter; AdamW with a one-cycle
     learning rate. Runs on ``images.device``.
@@ -347,7 +463,8 @@ def train_segmenter(
         images: float [N, 3, H, W] in [0, 1] (sRGB photos as loaded).
         labels: int [N, H, W] class ids 0-6, 255 unlabelled (skipped by the loss).
         cfg: :class:`TrainSegmenterConfig`.
-        model: continue training this network instead of a fresh one.
+        model: continue training this network instead of a fresh one (fine-tuning, e.g. the shipped network).
+        metal: bool [N, H, W] metal masks (ground truth of the training views), or None.
 
     Returns:
         :class:`SegmenterTraining` with the model (in eval mode), the loss per step and the training mIoU.
@@ -371,9 +488,17 @@ def train_segmenter(
         weight = w.float().to(device)
     else:
         weight = None
+    if net.cfg.work_size > 0 and cfg.crop:  # train at the scale photos are segmented at (work_size on the short side)
+        k = net.cfg.work_size / min(dims["H"], dims["W"])
+        cfg = replace(cfg, scale_range=(cfg.scale_range[0] * k, cfg.scale_range[1] * k))
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=max(cfg.steps, 1), pct_start=0.15)
     imgs_cpu, labs_cpu = images.detach().float().cpu(), labels.cpu()
+    use_metal = metal is not None and net.cfg.metal and cfg.metal_weight > 0
+    if use_metal:
+        check_shape(metal, f"{dims['N']} {dims['H']} {dims['W']}", name="metal")
+        metal_cpu = torch.where(labs_cpu == IGNORE_INDEX, torch.full_like(labs_cpu, IGNORE_INDEX),
+                                metal.cpu().long().clamp(0, 1))
     losses: list[float] = []
     t0 = time.time()
     steps = range(cfg.steps)
@@ -385,12 +510,19 @@ def train_segmenter(
         steps = tqdm(steps, desc="train segmenter", file=sys.stderr, leave=False)
     for _ in steps:
         idx = torch.randint(0, dims["N"], (cfg.batch_size,), generator=g)
-        pairs = [_augment(imgs_cpu[i], labs_cpu[i], cfg, g) for i in idx.tolist()]
+        pairs = [_augment(imgs_cpu[i], labs_cpu[i], cfg, g, metal_cpu[i] if use_metal else None)
+                 for i in idx.tolist()]
         x = torch.stack([p[0] for p in pairs]).to(device)
         y = torch.stack([p[1] for p in pairs]).to(device)
         if not bool((y != IGNORE_INDEX).any()):
             continue
-        loss = F.cross_entropy(net(x), y, weight=weight, ignore_index=IGNORE_INDEX)
+        logits, metal_logit = net.split(net(x))
+        loss = F.cross_entropy(logits, y, weight=weight, ignore_index=IGNORE_INDEX)
+        if use_metal:
+            m = torch.stack([p[2] for p in pairs]).to(device)
+            keep = m != IGNORE_INDEX
+            if bool(keep.any()):
+                loss = loss + cfg.metal_weight * F.binary_cross_entropy_with_logits(metal_logit[keep], m[keep].float())
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -426,29 +558,53 @@ class SegmenterTraining:
 
 
 # ============================================================================ inference backends
-def _predict_builtin(model: nn.Module, images: torch.Tensor, batch_size: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _to_work_size(x: torch.Tensor, work_size: int) -> torch.Tensor:
+    H, W = x.shape[-2:]
+    h, w = work_resolution(H, W, work_size)
+    if (h, w) == (H, W):
+        return x
+    return F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=h < H)
+
+
+def _predict_builtin(model: nn.Module, images: torch.Tensor, batch_size: int
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """(labels int64 [B, H, W], probabilities [B, 7, H, W], metal probability [B, H, W] or None)."""
     was = model.training
     model.eval()
-    labs, probs = [], []
+    labs, probs, metals = [], [], []
+    H, W = images.shape[-2:]
+    cfg = getattr(model, "cfg", None)
+    work = int(getattr(cfg, "work_size", 0) or 0)
+    has_metal = bool(getattr(cfg, "metal", False))
     try:
         p = next(iter(model.parameters()), None)
         device = p.device if p is not None else images.device
         with torch.no_grad():
             for s in range(0, images.shape[0], batch_size):
-                logits = model(images[s:s + batch_size].to(device).float())
-                if logits.ndim != 4 or logits.shape[1] != NUM_CLASSES or logits.shape[-2:] != images.shape[-2:]:
-                    raise SegmentationError(f"the builtin model returned shape {list(logits.shape)}; expected "
-                                            f"[B, {NUM_CLASSES}, {images.shape[-2]}, {images.shape[-1]}]")
+                x = _to_work_size(images[s:s + batch_size].to(device).float(), work)
+                out = model(x)
+                want = NUM_CLASSES + int(has_metal)
+                if out.ndim != 4 or out.shape[1] != want or out.shape[-2:] != x.shape[-2:]:
+                    raise SegmentationError(f"the builtin model returned shape {list(out.shape)}; expected "
+                                            f"[B, {want}, {x.shape[-2]}, {x.shape[-1]}]")
+                # logits and the metal probability (as the ONNX graph gives them) back at the photo's size
+                logits, metal = out[:, :NUM_CLASSES], (torch.sigmoid(out[:, NUM_CLASSES:]) if has_metal else None)
+                if out.shape[-2:] != (H, W):
+                    logits = F.interpolate(logits, size=(H, W), mode="bilinear", align_corners=False)
+                    metal = None if metal is None else F.interpolate(metal, size=(H, W), mode="bilinear",
+                                                                     align_corners=False)
                 pr = logits.softmax(1)
                 probs.append(pr.to(images.device, images.dtype))
                 labs.append(pr.argmax(1).to(images.device))
+                if has_metal:
+                    metals.append(metal[:, 0].to(images.device, images.dtype))
     finally:
         model.train(was)
     if not labs:
-        H, W = images.shape[-2:]
         return (torch.zeros(0, H, W, dtype=torch.long, device=images.device),
-                torch.zeros(0, NUM_CLASSES, H, W, dtype=images.dtype, device=images.device))
-    return torch.cat(labs), torch.cat(probs)
+                torch.zeros(0, NUM_CLASSES, H, W, dtype=images.dtype, device=images.device),
+                torch.zeros(0, H, W, dtype=images.dtype, device=images.device) if has_metal else None)
+    return torch.cat(labs), torch.cat(probs), (torch.cat(metals) if has_metal else None)
 
 
 def _onnx_session(model):
@@ -467,7 +623,8 @@ def _onnx_session(model):
     return sess, str(path), meta
 
 
-def _predict_onnx(model, images: torch.Tensor, batch_size: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _predict_onnx(model, images: torch.Tensor, batch_size: int
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     sess, where, meta = _onnx_session(model)
     if not isinstance(model, (str, os.PathLike)):
         meta = dict(sess.get_modelmeta().custom_metadata_map or {})
@@ -489,6 +646,12 @@ def _predict_onnx(model, images: torch.Tensor, batch_size: int) -> tuple[torch.T
     B, _, H, W = images.shape
     fixed_hw = (shape[2], shape[3]) if isinstance(shape[2], int) and isinstance(shape[3], int) else None
     step = 1 if isinstance(shape[0], int) else batch_size
+    try:
+        work = int(meta.get("dars.work_size", "0"))
+    except ValueError:
+        raise SegmentationError(f"{where}: metadata dars.work_size={meta.get('dars.work_size')!r} is not an integer")
+    metal_out = next((o.name for o in outs[1:] if o.name == "metal"), None)
+    metals = []
     if isinstance(shape[0], int) and shape[0] != 1:
         raise SegmentationError(f"{where}: input batch is fixed to {shape[0]}; use a dynamic batch or 1")
     labs, probs = [], []
@@ -497,13 +660,21 @@ def _predict_onnx(model, images: torch.Tensor, batch_size: int) -> tuple[torch.T
         if fixed_hw is not None and fixed_hw != (H, W):
             x = F.interpolate(x, size=fixed_hw, mode="bilinear", align_corners=False,
                               antialias=fixed_hw[0] < H or fixed_hw[1] < W)
+        elif fixed_hw is None and work > 0:
+            x = _to_work_size(x, work)
         if norm == "imagenet":
             x = (x - torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)) / torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
         try:
-            out = sess.run([outs[0].name], {inp.name: x.numpy().astype(np_dtype)})[0]
+            res = sess.run([outs[0].name] + ([metal_out] if metal_out else []), {inp.name: x.numpy().astype(np_dtype)})
+            out = res[0]
         except Exception as e:  # onnxruntime's own types
             raise SegmentationError(f"{where}: ONNX Runtime failed on input {list(x.shape)}: {e}") from e
         n = x.shape[0]
+        if metal_out:
+            m = torch.from_numpy(np.asarray(res[1], dtype=np.float32)).reshape(n, 1, *res[1].shape[-2:])
+            if m.shape[-2:] != (H, W):
+                m = F.interpolate(m, size=(H, W), mode="bilinear", align_corners=False)
+            metals.append(m[:, 0])
         if out.ndim == 4:
             if out.shape[0] != n or out.shape[1] != NUM_CLASSES:
                 raise SegmentationError(f"{where}: output '{outs[0].name}' has shape {list(out.shape)}; expected "
@@ -530,8 +701,9 @@ def _predict_onnx(model, images: torch.Tensor, batch_size: int) -> tuple[torch.T
             raise SegmentationError(f"{where}: output '{outs[0].name}' has shape {list(out.shape)}; {contract}")
     if not labs:
         return (torch.zeros(0, H, W, dtype=torch.long, device=images.device),
-                torch.zeros(0, NUM_CLASSES, H, W, dtype=images.dtype, device=images.device))
-    return torch.cat(labs).to(images.device), torch.cat(probs).to(images.device, images.dtype)
+                torch.zeros(0, NUM_CLASSES, H, W, dtype=images.dtype, device=images.device), None)
+    metal = torch.cat(metals).to(images.device, images.dtype) if metal_out else None
+    return torch.cat(labs).to(images.device), torch.cat(probs).to(images.device, images.dtype), metal
 
 
 def segment_images(
@@ -575,13 +747,13 @@ def segment_images(
         if model is None or not isinstance(model, nn.Module):
             raise SegmentationError("backend 'builtin' needs a trained Segmenter: train_segmenter(...) or "
                                     "load_segmenter(path)")
-        lab, prob = _predict_builtin(model, images, cfg.batch_size)
-        return Segmentation(labels=lab, probabilities=prob, backend="builtin")
+        lab, prob, metal = _predict_builtin(model, images, cfg.batch_size)
+        return Segmentation(labels=lab, probabilities=prob, backend="builtin", metal=metal)
     model = model if model is not None else cfg.onnx_path
     if model is None:
         raise SegmentationError("backend 'onnx' needs a model file (model=... or SegmentConfig(onnx_path=...))")
-    lab, prob = _predict_onnx(model, images, cfg.batch_size)
-    return Segmentation(labels=lab, probabilities=prob, backend="onnx")
+    lab, prob, metal = _predict_onnx(model, images, cfg.batch_size)
+    return Segmentation(labels=lab, probabilities=prob, backend="onnx", metal=metal)
 
 
 # ============================================================================ persistence
@@ -596,21 +768,27 @@ def save_segmenter(path: str | os.PathLike, model: Segmenter, extra: dict | None
     payload = {
         "format": _FORMAT,
         "version": 1,
-        "arch": {"widths": list(model.cfg.widths), "groups": model.cfg.groups, "num_classes": model.cfg.num_classes},
+        "arch": {"widths": list(model.cfg.widths), "groups": model.cfg.groups, "num_classes": model.cfg.num_classes,
+                 "metal": model.cfg.metal, "work_size": model.cfg.work_size},
         "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
         "extra": dict(extra or {}),
     }
     return save_torch(path, payload)
 
 
-def load_segmenter(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> Segmenter:
-    """Read a file written by :func:`save_segmenter`; returns the network in eval mode.
+def load_segmenter(path: str | os.PathLike | None = None, map_location: str | torch.device = "cpu") -> Segmenter:
+    """Read a file written by :func:`save_segmenter` (default: the shipped :data:`DEFAULT_SEGMENTER`); returns the
+    network in eval mode. ``net.meta`` holds the ``extra`` stored with it.
 
     Raises:
         SegmentationError: missing file, not a segmenter file, or weights that do not fit the architecture.
     """
-    path = Path(path)
+    shipped = path is None
+    path = Path(path).expanduser() if path is not None else DEFAULT_SEGMENTER
     if not path.is_file():
+        if shipped:
+            raise SegmentationError(f"the shipped segmenter {path} is missing from this installation; reinstall dars "
+                                    "or pass a trained segmenter.pt")
         raise SegmentationError(f"segmenter file not found: {path}")
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
@@ -620,9 +798,21 @@ def load_segmenter(path: str | os.PathLike, map_location: str | torch.device = "
         raise SegmentationError(f"{path} is not a dars segmenter file (written by save_segmenter)")
     arch = payload["arch"]
     net = Segmenter(SegmenterConfig(widths=tuple(arch["widths"]), groups=int(arch["groups"]),
-                                    num_classes=int(arch["num_classes"])))
+                                    num_classes=int(arch["num_classes"]), metal=bool(arch.get("metal", False)),
+                                    work_size=int(arch.get("work_size", 0))))
     try:
         net.load_state_dict(payload["state_dict"])
     except RuntimeError as e:
         raise SegmentationError(f"{path}: weights do not fit the stored architecture: {e}") from e
+    net.meta = dict(payload.get("extra") or {}, path=str(path))
     return net.to(map_location).eval()
+
+
+def shipped_segmenter_card() -> dict:
+    """The JSON card of the shipped segmenter (training data, seeds, held-out scores); {} when absent."""
+    card = DEFAULT_SEGMENTER.with_suffix(".json")
+    if not card.is_file():
+        return {}
+    import json
+
+    return json.loads(card.read_text())
