@@ -16,11 +16,13 @@ step "1/8 scene"
 $DARS info "$SAMPLE"
 $DARS contact-sheet "$SAMPLE" --out "$OUT/contact_sheet.png"
 
-step "2/8 priors (written to $OUT/priors, never into the sample)"
-$DARS priors sh-probe "$SAMPLE/env.hdr" --out "$OUT/priors/env_sh.json" --force
+step "2/8 priors from the photos alone (shipped networks; written to $OUT/priors, never into the sample)"
+# labels + metal masks by the shipped segmenter (never trained on this sample; its labels are only scored),
+# W maps from the photos and those predictions, SH light by the shipped light network
+$DARS priors segment "$SAMPLE" --out "$OUT/priors/segment" --force
 $DARS priors weights "$SAMPLE" --out "$OUT/priors/weights" --force
-$DARS priors segment "$SAMPLE" --backend builtin --out "$OUT/priors/segment" --force
 $DARS priors light "$SAMPLE" --out "$OUT/priors/light" --force
+$DARS priors sh-probe "$SAMPLE/env.hdr" --out "$OUT/priors/env_sh.json" --force  # for reference; training does not read it
 
 step "3/8 train (fast preset, $MINUTES min)"
 rm -rf "$OUT/run"

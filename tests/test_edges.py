@@ -328,7 +328,9 @@ def test_cli_weights(tmp_path, capsys):
     from _synthetic_gallery import write_scene
 
     scene = write_scene(tmp_path / "scene", n_train=4, n_test=1, size=40)
-    rc, out, err = _run(["priors", "weights", str(scene), "--alpha", "0.6", "--beta", "0.2", "--gamma", "0.2"], capsys)
+    # ground truth only on request: the scene's labels and metal masks (explicit flags, recorded in weights.json)
+    rc, out, err = _run(["priors", "weights", str(scene), "--alpha", "0.6", "--beta", "0.2", "--gamma", "0.2",
+                         "--labels", "scene", "--metal", "scene"], capsys)
     assert rc == 0, err
     d = scene / "priors" / "weights"
     w = np.load(d / "train__r_000.npy")
@@ -337,6 +339,7 @@ def test_cli_weights(tmp_path, capsys):
     s = json.loads((d / "weights.json").read_text())
     assert s["config"]["alpha"] == 0.6 and s["config"]["lambda_reg"] == 0.3 and s["tau"] == 0.7
     assert [r["labels"] for r in s["images"]] == ["scene"] * 4 and all(r["metal"] for r in s["images"])
+    assert s["ground_truth_inputs"] == "labels and metal masks" and "ground truth used: labels and metal" in out
     assert all(r["distortion_loss"] > 0 for r in s["images"])
     assert "mean W" in out and "W>0.7" in out and "L_dist" in out
     # the stored map is the stage's output (float16 rounding aside)
@@ -349,6 +352,15 @@ def test_cli_weights(tmp_path, capsys):
     rc, out, err = _run(["priors", "weights", str(scene), "--labels", "none", "--no-metal", "--json",
                          "--out", str(tmp_path / "w2")], capsys)
     assert rc == 0 and json.loads(out)["images"][0]["labels"] == "none"
+    # by default: the predictions of `dars priors segment` (beside --out), never the scene's ground truth
+    rc, out, err = _run(["priors", "weights", str(scene), "--out", str(tmp_path / "p" / "w0")], capsys)
+    s = json.loads((tmp_path / "p" / "w0" / "weights.json").read_text())
+    assert rc == 0 and s["labels"] == "none" and s["metal"] == "none" and s["ground_truth_inputs"] == "none"
+    assert _run(["priors", "segment", str(scene), "--out", str(tmp_path / "p" / "segment")], capsys)[0] == 0
+    rc, out, err = _run(["priors", "weights", str(scene), "--out", str(tmp_path / "p" / "weights")], capsys)
+    s = json.loads((tmp_path / "p" / "weights" / "weights.json").read_text())
+    assert rc == 0 and s["labels"].startswith("predicted") and s["metal"].startswith("predicted"), s
+    assert [r["labels"] for r in s["images"]] == ["segment"] * 4 and s["ground_truth_inputs"] == "none"
 
 
 def test_cli_weights_read_only_scene_suggests_out(tmp_path, capsys):

@@ -197,20 +197,23 @@ def priors_colour(scene, out_dir=None, cfg=None, force: bool = False) -> dict:
 
 
 # ============================================================================ segment (stage 3)
-def priors_segment(scene, out_dir=None, backend: str = "provided", model: str | None = None,
+def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | None = None,
                    train_every: int = 4, eval_scene=None, train_cfg=None,
                    export_onnx: Callable[..., Any] | None = None, force: bool = False) -> dict:
-    """Label every frame of ``scene`` and write ``<key>.png`` (uint8 ids), ``<key>_preview.png`` and
-    ``segment.json`` (mIoU where ground-truth labels exist); for ``builtin`` also ``segmenter.pt`` and
+    """Label every frame of ``scene`` and write ``<key>.png`` (uint8 ids), ``<key>_metal.png`` (the predicted metal
+    mask, 0/255, networks with a metal channel), ``<key>_preview.png`` and ``segment.json`` (mIoU and metal IoU where
+    ground truth exists, on frames the network was not trained on); for ``builtin`` also ``segmenter.pt`` and
     ``segmenter.onnx`` (with the ONNX parity figure).
 
     Args:
         scene: the frames to label.
         out_dir: output folder (path or :class:`OutputDir`; ``None``: ``scene.priors_dir("segment")``).
-        backend: ``provided``, ``builtin`` or ``onnx``.
-        model: ``builtin``: a ``segmenter.pt`` to use instead of training; ``onnx``: the ONNX file (required).
-        train_every: ``builtin`` without ``model``: train on every n-th labelled frame of ``scene``; mIoU is then
-            reported on the other frames (``miou_heldout``).
+        backend: ``shipped`` (default: the shipped network, or ``model``, on any photos — no labels needed),
+            ``builtin`` (fine-tune the shipped network, or ``model``, on every ``train_every``-th labelled frame),
+            ``provided`` (the scene's own labels) or ``onnx`` (``model`` is the ONNX file).
+        model: ``shipped``/``builtin``: a ``segmenter.pt`` instead of the shipped one; ``onnx``: the file (required).
+        train_every: ``builtin``: train on every n-th labelled frame of ``scene``; mIoU is then reported on the other
+            frames (``miou_heldout``).
         eval_scene: another labelled split (e.g. test) to report ``miou_eval`` on (not written).
         train_cfg: :class:`toolkit.segment.TrainSegmenterConfig`.
         export_onnx: for ``builtin``, the ONNX exporter that writes ``segmenter.onnx`` —
@@ -222,42 +225,51 @@ def priors_segment(scene, out_dir=None, backend: str = "provided", model: str | 
     Raises:
         DarsError / SegmentationError: unwritable folder, user files in the way, missing labels or model.
     """
-    from .segment import (SegmentConfig, SegmentationError, TrainSegmenterConfig, load_segmenter, mean_iou,
-                          save_segmenter, segment_images, train_segmenter)
+    from .segment import (DEFAULT_SEGMENTER, SegmentConfig, SegmentationError, TrainSegmenterConfig, load_segmenter,
+                          mean_iou, metal_iou, save_segmenter, segment_images, train_segmenter)
     from .visualise import colourise_labels, tile
 
+    if backend not in ("shipped", "builtin", "provided", "onnx"):
+        raise SegmentationError(f"backend {backend!r}: choose 'shipped', 'builtin', 'provided' or 'onnx'")
     keys = [f.key for f in scene.frames]
-    planned = [f"{k}.png" for k in keys] + [f"{k}_preview.png" for k in keys] + ["segment.json"]
+    net = None
+    if backend in ("shipped", "builtin"):
+        net = load_segmenter(model)  # None: the shipped network
+    with_metal = net is not None and net.cfg.metal
+    planned = [f"{k}.png" for k in keys] + [f"{k}_preview.png" for k in keys] + ["segment.json", "contact_sheet.png"]
+    planned += [f"{k}_metal.png" for k in keys] if with_metal else []
     if backend == "builtin":
         planned += ["segmenter.pt"] + (["segmenter.onnx"] if export_onnx is not None else [])
     out = prepare_out_dir(scene, "segment", out_dir, planned, force)
     has_gt = scene.has_extra("semantic")
     info: dict = {"scene": str(scene.source), "split": scene.split, "backend": backend}
-    net = None
+    if net is not None:
+        info["model"] = str(model) if model else f"shipped ({DEFAULT_SEGMENTER.name})"
+        info["metal_mask"] = "predicted" if with_metal else "none (the network has no metal channel)"
     train_idx: list[int] = []
     if backend == "builtin":
-        if model:
-            net = load_segmenter(model)
-            info["model"] = str(model)
-        else:
-            if not has_gt:
-                raise SegmentationError(
-                    f"{scene.source}: backend 'builtin' trains on labelled views, but split '{scene.split}' has no "
-                    "semantic_path labels; pass --model segmenter.pt (a trained one) or use --backend onnx")
-            if train_every < 1:
-                raise SegmentationError(f"--train-every {train_every} must be >= 1")
-            train_idx = list(range(0, len(scene), train_every))
-            hw = [(int(h), int(w)) for h, w in zip(scene.cameras.height, scene.cameras.width)]
-            train_idx = [i for i in train_idx if hw[i] == hw[train_idx[0]]]
-            imgs = scene.load_images(train_idx)  # photos of one size (the first's) train it; it segments any size
-            labs = torch.stack([scene.load_extra(i, "semantic") for i in train_idx])
-            cfg = train_cfg or TrainSegmenterConfig(progress=True)
-            res = train_segmenter(imgs, labs, cfg)
-            net = res.model
-            info.update(train_views=[scene.frames[i].key for i in train_idx], train_seconds=round(res.seconds, 1),
-                        train_miou=res.train_miou, final_loss=float(np.mean(res.losses[-20:])) if res.losses else None,
-                        parameters=net.num_parameters(), train_config=asdict(cfg))
-        save_segmenter(out.file("segmenter.pt"), net, {"scene": str(scene.source)})
+        if not has_gt:
+            raise SegmentationError(
+                f"{scene.source}: backend 'builtin' fine-tunes on labelled views, but split '{scene.split}' has no "
+                "semantic_path labels; use the default backend 'shipped' (no labels needed)")
+        if train_every < 1:
+            raise SegmentationError(f"--train-every {train_every} must be >= 1")
+        train_idx = list(range(0, len(scene), train_every))
+        hw = [(int(h), int(w)) for h, w in zip(scene.cameras.height, scene.cameras.width)]
+        train_idx = [i for i in train_idx if hw[i] == hw[train_idx[0]]]
+        imgs = scene.load_images(train_idx)  # photos of one size (the first's) train it; it segments any size
+        labs = torch.stack([scene.load_extra(i, "semantic") for i in train_idx])
+        metal = (torch.stack([scene.load_extra(i, "metal").bool() for i in train_idx])
+                 if with_metal and all("metal" in scene.frames[i].extras for i in train_idx) else None)
+        cfg = train_cfg or TrainSegmenterConfig(progress=True, lr=1e-3)
+        res = train_segmenter(imgs, labs, cfg, model=net, metal=metal)
+        net = res.model
+        info.update(train_views=[scene.frames[i].key for i in train_idx], train_seconds=round(res.seconds, 1),
+                    train_miou=res.train_miou, final_loss=float(np.mean(res.losses[-20:])) if res.losses else None,
+                    parameters=net.num_parameters(), train_config=asdict(cfg),
+                    ground_truth_inputs=f"labels{' and metal masks' if metal is not None else ''} of the "
+                                        f"{len(train_idx)} training views (fine-tuning)")
+        save_segmenter(out.file("segmenter.pt"), net, {"scene": str(scene.source), "fine_tuned_from": info["model"]})
         if export_onnx is not None:
             h, w = scene.image_size
             rep = export_onnx(net, out.file("segmenter.onnx"), image_size=(h, w))
@@ -267,9 +279,14 @@ def priors_segment(scene, out_dir=None, backend: str = "provided", model: str | 
         if not model:
             raise SegmentationError("backend 'onnx' needs --model FILE.onnx")
         info["model"] = str(model)
-    scfg = SegmentConfig(backend=backend)
+    scfg = SegmentConfig(backend="provided" if backend == "provided" else "onnx" if backend == "onnx" else "builtin")
 
-    preds, gts = [], []
+    def _run(img):
+        return segment_images(img[None], scfg, model=net if net is not None else model)
+
+    preds, gts, mpred, mgt = [], [], [], []
+    sheet_idx = set(np.linspace(0, len(scene) - 1, min(8, len(scene))).round().astype(int).tolist())
+    sheet_rows = []
     for i in _progress(range(len(scene)), "segment", len(scene)):
         f = scene.frames[i]
         img = scene.load_image(i)
@@ -279,16 +296,25 @@ def priors_segment(scene, out_dir=None, backend: str = "provided", model: str | 
                 raise SegmentationError(f"frame {i} ('{f.name}') has no semantic_path labels for backend 'provided'")
             seg = segment_images(img[None], scfg, labels=gt[None])
         else:
-            seg = segment_images(img[None], scfg, model=net if backend == "builtin" else model)
+            seg = _run(img)
         lab = seg.labels[0]
         write_png(out.file(f"{f.key}.png"), lab.numpy().astype(np.uint8))
         row = [img.permute(1, 2, 0).numpy(), colourise_labels(lab)]
+        if seg.metal is not None:
+            m = seg.metal[0] > 0.5
+            write_png(out.file(f"{f.key}_metal.png"), m.numpy().astype(np.uint8) * 255)
+            row.append(np.repeat(m.numpy()[..., None].astype(np.float32), 3, axis=2))
         if gt is not None:
             row.append(colourise_labels(gt))
         write_png(out.file(f"{f.key}_preview.png"), tile([row]))
+        if i in sheet_idx and row[0].shape == (sheet_rows[0][0].shape if sheet_rows else row[0].shape):
+            sheet_rows.append(row)
         if gt is not None and i not in train_idx:
             preds.append(lab)
             gts.append(gt)
+            if seg.metal is not None and "metal" in f.extras:
+                mpred.append(seg.metal[0] > 0.5)
+                mgt.append(scene.load_extra(i, "metal").bool())
     from .scene import SEMANTIC_CLASSES
 
     def _report(p, g):
@@ -298,19 +324,77 @@ def priors_segment(scene, out_dir=None, backend: str = "provided", model: str | 
     if gts:
         info["miou_heldout"], info["per_class_heldout"] = _report(preds, gts)
         info["heldout_views"] = len(gts)
+        if mgt and len(mgt) == len(gts):
+            info["metal_iou_heldout"] = metal_iou(*(torch.cat([x.reshape(-1) for x in v]) for v in (mpred, mgt, gts)))
     if eval_scene is not None and eval_scene.has_extra("semantic") and backend != "provided":
-        ep, eg = [], []
+        ep, eg, emp, emg = [], [], [], []
         for i in _progress(range(len(eval_scene)), f"segment eval ({eval_scene.split})", len(eval_scene)):
-            seg = segment_images(eval_scene.load_image(i)[None], scfg, model=net if backend == "builtin" else model)
+            seg = _run(eval_scene.load_image(i))
             ep.append(seg.labels[0])
             eg.append(eval_scene.load_extra(i, "semantic"))
+            if seg.metal is not None and "metal" in eval_scene.frames[i].extras:
+                emp.append(seg.metal[0] > 0.5)
+                emg.append(eval_scene.load_extra(i, "metal").bool())
         info["miou_eval"], info["per_class_eval"] = _report(ep, eg)
         info["eval_split"] = eval_scene.split
         info["eval_views"] = len(eg)
+        if emg and len(emg) == len(eg):
+            info["metal_iou_eval"] = metal_iou(*(torch.cat([x.reshape(-1) for x in v]) for v in (emp, emg, eg)))
+    if sheet_rows:
+        from .visualise import labelled_sheet
+
+        cols = ["photo", "labels"] + (["metal mask"] if with_metal else []) + (["ground truth (scored only)"]
+                                                                               if len(sheet_rows[0]) > 2 + with_metal else [])
+        write_png(out.file("contact_sheet.png"), labelled_sheet(sheet_rows, cols))
     info["out"] = str(out.path)
     write_json(out.file("segment.json"), info)
     out.finish({"scene": str(scene.source), "split": scene.split})
     return info
+
+
+# ============================================================================ all a run needs, from photos alone
+def scene_has_priors(scene: "Scene", priors_root: str | os.PathLike | None = None) -> bool:
+    """True when ``priors_root`` (default: next to the scene) holds a segmentation or a light estimate."""
+    return any((priors_path(scene, stage, priors_root) / name).is_file()
+               for stage, name in (("segment", "segment.json"), ("light", "light.json")))
+
+
+def compute_priors(scene: "Scene", root: str | os.PathLike, segmenter: str | os.PathLike | None = None,
+                   light_weights: str | os.PathLike | None = None, force: bool = False, log=None) -> dict:
+    """The priors a run needs, from the photos alone, into ``root``: ``segment/`` (labels and metal masks of the
+    shipped segmenter, or ``segmenter``) and ``light/`` (the SH estimate of the shipped light network, or
+    ``light_weights``); ``root/priors.json`` records which model produced each. W maps are not written: training
+    computes them from the photos and these predictions (eqs. 2-4, 8). No ground truth is read (scene labels are
+    only scored in ``segment.json`` when present).
+
+    Returns:
+        the content of ``priors.json``.
+    """
+    import time
+
+    from .segment import DEFAULT_SEGMENTER
+
+    log = log or (lambda m: print(m, file=sys.stderr))
+    root = Path(root)
+    t0 = time.time()
+    seg = priors_segment(scene, root / "segment", "shipped", model=str(segmenter) if segmenter else None, force=force)
+    t1 = time.time()
+    light = priors_light(scene, root / "light", weights=str(light_weights) if light_weights else None, force=force)
+    t2 = time.time()
+    rec = {
+        "scene": str(scene.source), "split": scene.split,
+        "segment": {"model": str(segmenter) if segmenter else str(DEFAULT_SEGMENTER), "seconds": round(t1 - t0, 1),
+                    "metal_mask": seg.get("metal_mask"), "miou_vs_scene_labels": seg.get("miou_heldout")},
+        "light": {"model": light["model"]["path"], "seconds": round(t2 - t1, 1), "coeffs": light["coeffs"]},
+        "weights": "computed by training from the photos and the predicted labels and metal masks",
+        "ground_truth_inputs": "none",
+    }
+    write_json(root / "priors.json", rec)
+    miou = seg.get("miou_heldout")
+    log(f"[dars] priors from the photos -> {root}: labels + metal masks ({rec['segment']['model']}, "
+        f"{t1 - t0:.0f} s{f'; mIoU {miou:.2f} against the scene labels, which are not used' if miou is not None else ''}), "
+        f"light ({t2 - t1:.0f} s)")
+    return rec
 
 
 # ============================================================================ light (stage 4)
@@ -414,7 +498,7 @@ def sh_probe_json(path: str | os.PathLike, layout: str, rotate_x_deg: float) -> 
 
 # ============================================================================ weights (stage 6)
 def priors_weights(scene, out_dir=None, cfg=None, labels: str = "auto", use_metal: bool = True,
-                   force: bool = False) -> dict:
+                   force: bool = False, metal: str = "auto", segment_dir: str | os.PathLike | None = None) -> dict:
     """Write distortion weight maps of every frame: ``<key>.npy`` (float16 W), ``<key>_overlay.png`` and
     ``weights.json``; returns the summary written to ``weights.json``.
 
@@ -422,10 +506,13 @@ def priors_weights(scene, out_dir=None, cfg=None, labels: str = "auto", use_meta
         scene: a loaded :class:`toolkit.scene.Scene`.
         out_dir: output folder (path or :class:`OutputDir`; ``None``: ``scene.priors_dir("weights")``).
         cfg: :class:`toolkit.edges.WeightMapConfig` (default config if ``None``).
-        labels: ``auto`` (scene labels, else ``priors/segment`` predictions, else none), ``scene``, ``segment``
-            or ``none``.
-        use_metal: use the scene's ``metal`` masks when present.
+        labels: ``auto`` (the predictions in ``segment_dir`` when every frame has one, else none), ``segment``,
+            ``scene`` (the scene's ground-truth labels: experiments only, recorded in ``weights.json``) or ``none``.
+        use_metal: False: no metal term (as ``metal="none"``).
         force: write into a folder holding other files (beside them; never over them).
+        metal: the metal mask of eq. 4: ``auto`` (predicted ``<key>_metal.png`` in ``segment_dir`` when every frame
+            has one, else none), ``scene`` (ground truth, experiments only) or ``none``.
+        segment_dir: folder of ``dars priors segment`` outputs (default: ``scene.priors_dir("segment")``).
 
     Raises:
         DarsError: the folder is not writable, or holds files of the user's that would be overwritten.
@@ -436,21 +523,46 @@ def priors_weights(scene, out_dir=None, cfg=None, labels: str = "auto", use_meta
     keys = [f.key for f in scene.frames]
     out = prepare_out_dir(scene, "weights", out_dir,
                           [f"{k}.npy" for k in keys] + [f"{k}_overlay.png" for k in keys] + ["weights.json"], force)
-    seg_dir = scene.priors_dir("segment")
+    seg_dir = Path(segment_dir) if segment_dir is not None else scene.priors_dir("segment")
+    if labels == "auto":  # predictions, never the scene's ground truth unless asked for
+        labels = "segment" if label_source(scene, "auto", seg_dir) != "none" and all(
+            (seg_dir / f"{f.key}.png").is_file() for f in scene.frames) else "none"
+    if metal not in ("auto", "scene", "segment", "none"):
+        raise ConfigError(f"metal={metal!r}: choose 'auto', 'scene', 'segment' or 'none'")
+    metal_files = [seg_dir / f"{f.key}_metal.png" for f in scene.frames]
+    if not use_metal:
+        metal = "none"
+    elif metal == "auto":
+        metal = "segment" if all(p.is_file() for p in metal_files) else "none"
+    if metal == "segment" and not all(p.is_file() for p in metal_files):
+        raise DarsError(f"no predicted metal masks in {seg_dir} (<key>_metal.png); run `dars priors segment` first")
+    if metal == "scene" and not scene.has_extra("metal"):
+        raise DarsError(f"{scene.source} has no metal_path masks; use --metal auto or none")
     rows = []
     for i in _progress(range(len(scene)), "weights", len(scene)):
         f = scene.frames[i]
         img = scene.load_image(i)
         lab, lab_src = labels_for(scene, labels, seg_dir, [i])  # [1, H, W] or None
-        metal = scene.load_extra(i, "metal") if use_metal and "metal" in f.extras else None
-        wm = weight_map(img[None], lab, None if metal is None else metal[None], cfg)
+        if metal == "scene":
+            mask = scene.load_extra(i, "metal")
+        elif metal == "segment":
+            m = np.asarray(read_map(metal_files[i], f"predicted metal mask {metal_files[i]}"))
+            mask = torch.from_numpy(_fit_to_frame(scene, i, ((m[..., 0] if m.ndim == 3 else m) > 0).astype(np.uint8),
+                                                  nearest=True) > 0)
+        else:
+            mask = None
+        wm = weight_map(img[None], lab, None if mask is None else mask[None], cfg)
         w = wm.weights[0]
         _save_npy(out.file(f"{f.key}.npy"), w.numpy().astype(np.float16))
         write_png(out.file(f"{f.key}_overlay.png"), weight_overlay(img, w))
         rows.append({"key": f.key, "name": f.name, "mean": float(w.mean()), "frac_above_tau": float((w > TAU).float().mean()),
-                     "distortion_loss": float(wm.distortion_loss[0]), "labels": lab_src, "metal": metal is not None})
+                     "distortion_loss": float(wm.distortion_loss[0]), "labels": lab_src, "metal": mask is not None})
+    gt = [w for w, src in (("labels", labels), ("metal masks", metal)) if src == "scene"]
     summary = {
         "scene": str(scene.source), "split": scene.split, "tau": TAU, "config": asdict(cfg),
+        "labels": {"segment": f"predicted ({seg_dir})", "scene": "ground truth (scene)"}.get(labels, "none"),
+        "metal": {"segment": f"predicted ({seg_dir})", "scene": "ground truth (scene)"}.get(metal, "none"),
+        "ground_truth_inputs": " and ".join(gt) if gt else "none",
         "distortion_loss_definition": "lambda_reg * (sum (D_x W)^2 + sum (D_y W)^2) / (H W), per image",
         "mean_distortion_loss": float(np.mean([r["distortion_loss"] for r in rows])) if rows else 0.0,
         "mean_weight": float(np.mean([r["mean"] for r in rows])) if rows else 0.0,

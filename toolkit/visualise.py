@@ -95,6 +95,45 @@ def contact_sheet(scene: Scene, out: Path, n: int = 6) -> Path:
     return out
 
 
+def labelled_sheet(rows: list[list[np.ndarray]], columns: list[str], max_width: int = 256) -> np.ndarray:
+    """A contact sheet of segmentation rows (photo | labels | metal | ...) with column titles and the class colour
+    legend, as an H-W-3 float image. Every image is resized to the first photo's size, at most ``max_width`` wide."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+    from PIL import Image
+
+    h0, w0 = rows[0][0].shape[:2]
+    k = min(max_width, max(w0, 128)) / w0  # small renders are enlarged so titles and legend fit
+    size = (max(1, round(w0 * k)), max(1, round(h0 * k)))
+
+    def fit(a):
+        a = np.clip(a[..., :3] if a.ndim == 3 else np.repeat(a[..., None], 3, -1), 0, 1)
+        if a.shape[1::-1] == size:
+            return a
+        return np.asarray(Image.fromarray((a * 255 + 0.5).astype(np.uint8)).resize(size, Image.NEAREST),
+                          np.float32) / 255.0
+
+    grid = tile([[fit(a) for a in r] for r in rows])
+    dpi = 100
+    fig = plt.figure(figsize=(grid.shape[1] / dpi, (grid.shape[0] + 90) / dpi), dpi=dpi)
+    ax = fig.add_axes([0, 0, 1, grid.shape[0] / (grid.shape[0] + 90)])
+    ax.imshow(grid, interpolation="nearest")
+    ax.axis("off")
+    ncol = max(len(r) for r in rows)
+    for j, name in enumerate(columns[:ncol]):
+        fig.text((j + 0.5) / ncol, 1 - 0.25 * 90 / (grid.shape[0] + 90), name, ha="center", va="center", fontsize=7)
+    handles = [Patch(color=c, label=n) for c, n in zip(LABEL_COLOURS, SEMANTIC_CLASSES)]
+    fig.legend(handles=handles, loc="upper center", ncol=min(len(handles), 2 * ncol), fontsize=7, frameon=False,
+               bbox_to_anchor=(0.5, 1 - 0.45 * 90 / (grid.shape[0] + 90)))
+    fig.canvas.draw()
+    img = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(np.float32) / 255.0
+    plt.close(fig)
+    return img
+
+
 OUTPUT_NAMES = ("rgb", "albedo", "diffuse", "specular", "roughness", "metallic", "opacity", "normal", "semantic",
                 "depth", "samples")
 """Every image :func:`render_output_images` can return (``dars render`` writes ``<view>_<name>.png``)."""

@@ -33,18 +33,28 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--gamma", type=NONNEGATIVE, default=0.2, help="metal mask weight (default 0.2)")
     q.add_argument("--lambda-reg", type=NONNEGATIVE, default=0.3, help="smoothness weight of eq. 8 (default 0.3)")
     q.add_argument("--labels", choices=["auto", "scene", "segment", "none"], default="auto",
-                   help="labels for the semantic edges: scene's, predicted (priors/segment), or none (default: auto)")
-    q.add_argument("--no-metal", action="store_true", help="ignore the scene's metal masks")
+                   help="labels for the semantic edges: auto (default) = the predictions of `dars priors segment` "
+                        "when present, else none; scene = the scene's ground truth (experiments only)")
+    q.add_argument("--metal", choices=["auto", "scene", "segment", "none"], default="auto",
+                   help="metal mask of eq. 4: auto (default) = the predicted masks when present, else none; "
+                        "scene = the scene's ground truth (experiments only)")
+    q.add_argument("--segment", default=None, metavar="DIR",
+                   help="folder of `dars priors segment` outputs (default: the 'segment' folder beside --out, "
+                        "else <scene>/priors/segment)")
+    q.add_argument("--no-metal", action="store_true", help="no metal term (as --metal none)")
     q.set_defaults(func=cmd_weights)
 
-    q = stages.add_parser("segment", help="7-class semantic labels (provided, builtin network, or an ONNX model)")
+    q = stages.add_parser("segment", help="7-class semantic labels + metal mask (shipped network by default)")
     _common(q, "segment")
-    q.add_argument("--backend", choices=["provided", "builtin", "onnx"], default="provided")
-    q.add_argument("--model", default=None, help="builtin: a trained segmenter.pt; onnx: the .onnx file")
+    q.add_argument("--backend", choices=["shipped", "builtin", "provided", "onnx"], default="shipped",
+                   help="shipped (default): the shipped network on any photos; builtin: fine-tune it on the scene's "
+                        "labelled views; provided: the scene's own labels (ground truth); onnx: --model FILE.onnx")
+    q.add_argument("--model", default=None, help="shipped/builtin: a segmenter.pt instead of the shipped one; "
+                                                 "onnx: the .onnx file")
     q.add_argument("--train-every", type=POSITIVE, default=4,
-                   help="builtin: train on every n-th labelled view (default 4)")
+                   help="builtin: fine-tune on every n-th labelled view (default 4)")
     q.add_argument("--eval-split", default="test", help="also report mIoU on this split if labelled ('none' to skip)")
-    q.add_argument("--steps", type=POSITIVE, default=500, help="builtin: training steps (default 500)")
+    q.add_argument("--steps", type=POSITIVE, default=300, help="builtin: fine-tuning steps (default 300)")
     q.add_argument("--seed", type=COUNT, default=0)
     q.add_argument("--no-onnx", action="store_true", help="builtin: do not write segmenter.onnx")
     q.set_defaults(func=cmd_segment)
@@ -122,8 +132,12 @@ def cmd_weights(args: argparse.Namespace) -> int:
 
     scene = load_scene(args.scene, args.split, downscale=args.downscale)
     cfg = WeightMapConfig(alpha=args.alpha, beta=args.beta, gamma=args.gamma, lambda_reg=args.lambda_reg)
+    seg = args.segment
+    if seg is None and args.out and (Path(args.out).parent / "segment").is_dir():
+        seg = Path(args.out).parent / "segment"
     with _out(args, scene, "weights").guard() as out:
-        s = priors_weights(scene, out, cfg, labels=args.labels, use_metal=not args.no_metal)
+        s = priors_weights(scene, out, cfg, labels=args.labels, use_metal=not args.no_metal, metal=args.metal,
+                           segment_dir=seg)
     if args.json:
         print_json(s)
         return 0
@@ -133,6 +147,7 @@ def cmd_weights(args: argparse.Namespace) -> int:
               f"{r['labels']:<6}  {'yes' if r['metal'] else 'no'}")
     print(f"{len(s['images'])} weight maps (alpha={cfg.alpha}, beta={cfg.beta}, gamma={cfg.gamma}, "
           f"lambda_reg={cfg.lambda_reg}); mean L_distortion {s['mean_distortion_loss']:.5f} -> {s['out']}")
+    print(f"labels: {s['labels']}; metal mask: {s['metal']}; ground truth used: {s['ground_truth_inputs']}")
     return 0
 
 
@@ -147,7 +162,8 @@ def cmd_segment(args: argparse.Namespace) -> int:
     eval_scene = None
     if args.eval_split != "none" and args.eval_split != args.split and args.eval_split in list_splits(args.scene):
         eval_scene = load_scene(args.scene, args.eval_split, downscale=args.downscale)
-    tcfg = TrainSegmenterConfig(steps=args.steps, seed=args.seed, progress=True) if args.backend == "builtin" else None
+    tcfg = (TrainSegmenterConfig(steps=args.steps, seed=args.seed, lr=1e-3, progress=True)
+            if args.backend == "builtin" else None)
     if args.model and not Path(args.model).is_file():
         raise DarsError(f"--model {args.model}: file not found")
     with _out(args, scene, "segment").guard() as out:
@@ -163,6 +179,8 @@ def cmd_segment(args: argparse.Namespace) -> int:
                     else f"{info['eval_views']} views of '{info['eval_split']}'")
             per = ", ".join(f"{c} {v:.3f}" if v is not None else f"{c} -" for c, v in info[f"per_class_{name}"].items())
             print(f"mIoU {info[f'miou_{name}']:.3f} on {what}  ({per})")
+            if info.get(f"metal_iou_{name}") is not None:
+                print(f"metal-mask IoU {info[f'metal_iou_{name}']:.3f} on the same views")
     if "onnx" in info:
         print(f"segmenter.onnx: opset {info['onnx']['opset']}, max |onnxruntime - torch| = {info['onnx']['max_abs_err']:.2e}")
     return 0
