@@ -156,6 +156,39 @@ def test_cli_train_and_render(tiny, tmp_path, capsys):
     assert "training length" in capsys.readouterr().err
 
 
+def test_cli_train_computes_its_priors_from_the_photos(tmp_path, capsys):
+    """`dars train` on photos + poses with no priors computes labels, metal masks and light with the shipped networks
+    into <out>/priors, trains with them (never the scene's ground truth) and records which models produced them;
+    --no-auto-priors trains without; a scene's own priors are used as they are."""
+    from _synthetic_gallery import write_scene
+
+    from toolkit.cli import main
+
+    scene = write_scene(tmp_path / "scene", n_train=4, n_test=1, size=32)
+    run = tmp_path / "run"
+    assert main(["train", str(scene), "--out", str(run), "--steps", "2", "--batch-rays", "256", "--quiet"]) == 0
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["priors_root"] == str((run / "priors").resolve())
+    assert cfg["priors"]["labels"].startswith("predicted") and cfg["priors"]["metal"].startswith("predicted")
+    assert cfg["priors"]["weights"] == "computed (G+E+M)" and "ground_truth_inputs" not in cfg["priors"]
+    assert cfg["l_env_source"].startswith("light network")
+    rec = json.loads((run / "priors" / "priors.json").read_text())
+    assert rec["ground_truth_inputs"] == "none" and rec["segment"]["model"].endswith("segmenter_small.pt")
+    assert rec["light"]["model"].endswith(".pt") and len(rec["light"]["coeffs"]) == 9
+    assert (run / "priors" / "segment" / "train__r_000_metal.png").is_file()
+    man = json.loads((run / "dars_manifest.json").read_text())
+    assert "priors/" in man["files"] and "checkpoint.pt" in man["files"]
+    # --force restarts the run in the same folder (the priors are recomputed over dars's own files)
+    assert main(["train", str(scene), "--out", str(run), "--steps", "1", "--batch-rays", "256", "--quiet",
+                 "--force"]) == 0
+    # without
+    assert main(["train", str(scene), "--out", str(tmp_path / "bare"), "--steps", "1", "--batch-rays", "256",
+                 "--quiet", "--no-auto-priors"]) == 0
+    cfg = json.loads((tmp_path / "bare" / "config.json").read_text())
+    assert cfg["priors_root"] is None and cfg["priors"]["labels"] == "none" and not (tmp_path / "bare" / "priors").exists()
+    capsys.readouterr()
+
+
 def test_normal_losses_point_normals_out_of_the_surface():
     """Orientation loss: zero for normals facing the camera, (n·d)² for back-facing ones; L_eikonal: zero when the
     normal equals −∇σ/‖∇σ‖ and maximal (4) when it is the opposite."""

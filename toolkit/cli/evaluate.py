@@ -61,7 +61,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="label and metal-mask source of every variant, as dars train --labels (default: predicted, "
                         "the segmentation prior's; the report lists which inputs were ground truth)")
     q.add_argument("--priors", help="directory holding the prior stages' outputs, as dars train --priors "
-                                    "(default: <scene>/priors)")
+                                    "(default: <scene>/priors when it has them, else computed from the photos once "
+                                    "into OUT/priors)")
     q.add_argument("--force", action="store_true", help="write into a non-empty folder beside its files")
     q.add_argument("--threads", type=COUNT, default=0, help="CPU threads (default: all cores)")
     q.add_argument("--json", action="store_true", help="print only ablation.json on stdout")
@@ -148,7 +149,8 @@ def cmd_ablate(args: argparse.Namespace) -> int:
         raise DarsError(f"scene not found: {args.scene}")
     check_priors_root(args.priors)
     variants = args.variants or list(VARIANTS)
-    out = OutputDir(args.out, "ablate", force=args.force).check(list(ABLATION_FILES) + [f"{v}/" for v in variants])
+    out = OutputDir(args.out, "ablate", force=args.force).check(list(ABLATION_FILES) + [f"{v}/" for v in variants]
+                                                                 + ["priors/"])
 
     from ..ablation import run_ablation
     from ..evaluate import EvalConfig
@@ -157,12 +159,22 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     overrides: dict = {"batch_rays": args.batch_rays} if args.batch_rays else {}
     if args.labels != "predicted":
         overrides["labels"] = args.labels
+    priors = args.priors
     with out.guard():
+        if priors is None:  # as dars train: the scene's priors, else computed once from the photos for every variant
+            from ..priors import compute_priors, scene_has_priors
+            from ..scene import load_scene
+
+            scene = load_scene(args.scene, args.split)
+            if not scene_has_priors(scene):
+                priors = str(out.path / "priors")
+                if not (Path(priors) / "priors.json").is_file():
+                    compute_priors(scene, priors, force=True)
         res = run_ablation(args.scene, out, preset=args.preset, minutes=args.minutes, steps=args.steps,
                            seed=None if args.seeds else (args.seed or 0), seeds=args.seeds,
                            variants=args.variants, overrides=overrides,
                            eval_cfg=EvalConfig(limit=args.limit, lpips_weights=args.lpips_weights), split=args.split,
-                           progress_bar=not (args.quiet or args.json), log=log, priors_root=args.priors)
+                           progress_bar=not (args.quiet or args.json), log=log, priors_root=priors)
     doc = res.to_json()
     if args.json:
         print_json(doc)

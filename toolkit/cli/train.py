@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from .._checks import DarsError
@@ -35,7 +36,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="keep the scene's orientation: a COLMAP model, or a transforms JSON without an aabb that "
                         "`dars poses` did not write, is otherwise rotated on load so that world up is +z. Recorded in "
                         "the run: render, relight, eval and --resume load the scene the same way")
-    q.add_argument("--priors", help="directory holding the prior stages' outputs (default: <scene>/priors)")
+    q.add_argument("--priors", help="directory holding the prior stages' outputs (default: <scene>/priors when it "
+                                    "has them; else they are computed from the photos into <out>/priors)")
+    q.add_argument("--no-auto-priors", action="store_true",
+                   help="do not compute missing priors (segmentation + metal mask, light): train without them")
     q.add_argument("--no-dars", action="store_true", help="ablation: uniform rays + hierarchical sampling")
     q.add_argument("--no-semantics", action="store_true",
                    help="ablation: no semantic input (no L_semantic, no label edges in W; L_mat keeps its class terms)")
@@ -194,15 +198,43 @@ def cmd_train(args: argparse.Namespace) -> int:
     if snapshots:
         overrides["snapshot_minutes"] = snapshots
     cfg = make_config(args.preset or "fast", **overrides)
+    priors = args.priors
     try:
+        if not args.resume and priors is None and not args.no_auto_priors and cfg.shading != "radiance":
+            priors = _auto_priors(args, ddp)
         ck = train(args.scene, args.out, cfg, resume=args.resume, split=args.split or "train",
-                   progress_bar=not args.quiet, priors_root=args.priors, force=args.force, downscale=args.downscale,
+                   progress_bar=not args.quiet, priors_root=priors, force=args.force, downscale=args.downscale,
                    upright="off" if args.no_upright else "auto")
     finally:
         shutdown()
     if ddp is None or ddp.is_main:
         print(f"run: {Path(args.out)}  checkpoint: {ck}")
     return 0
+
+
+def _auto_priors(args: argparse.Namespace, ddp) -> str | None:
+    """``dars train`` without ``--priors``: the scene's own priors when it has them, else the segmentation (labels +
+    metal masks) and light priors computed from the photos into ``<out>/priors`` (rank 0 of a data-parallel run; the
+    others wait). Returns the priors root to train with (None: the scene's)."""
+    from ..outputs import OutputDir
+    from ..priors import compute_priors, scene_has_priors
+    from ..scene import load_scene
+    from ..train.folder import open_run_dir
+
+    scene = load_scene(args.scene, args.split or "train", downscale=args.downscale,
+                       upright="off" if args.no_upright else "auto")
+    if scene_has_priors(scene):
+        print(f"[dars] using the priors in {Path(args.scene) / 'priors'}", file=sys.stderr)
+        return None
+    open_run_dir(args.out, False, args.force)  # refuse a folder holding a run before any work
+    root = Path(args.out) / "priors"
+    if ddp is None or ddp.is_main:
+        with OutputDir(args.out, "train", force=args.force).check(["priors/"]).guard() as folder:
+            compute_priors(scene, root, force=True)
+            folder.finish()
+    if ddp is not None:
+        ddp.barrier()
+    return str(root)
 
 
 def _views(args):
