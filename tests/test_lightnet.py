@@ -222,8 +222,16 @@ def test_shipped_weights_load():
     assert net.cfg.name == "small" and "train_mean_sh" in net.meta
     assert DEFAULT_WEIGHTS.stat().st_size < 2_000_000
     info = json.loads(DEFAULT_WEIGHTS.with_suffix(".json").read_text())
-    h = info["heldout"]
-    assert h["network"] < h["train_mean_sh"] and h["network"] < h["mean_colour"], h
+    # trained on procedural galleries; a whole probe and two unseen validation galleries held out (issue 17 part 2)
+    g = info["galleries"]
+    assert g["holdout_probes"] and all(not g["train_seeds_by_probe"].get(p) for p in g["holdout_probes"]), g
+    assert len(g["heldout_galleries"]) >= 2 and g["train_galleries"] >= 30, g
+    s = info["heldout_gallery_sources"]
+    assert set(g["holdout_probes"]) | {Path(d).name for d in g["heldout_galleries"]} == set(s["sources"]), s
+    # measured: better than zero light on every held-out source (all 3 training seeds) and ~10 % below the grey
+    # ambient on average (the issue's 30 % target is not met); see the card's seed_spread
+    assert s["beats_zero_on_every_source"] and s["network_over_grey"] < 0.95, s
+    assert all(info["seed_spread"]["beats_zero_on_every_source"]), info["seed_spread"]
 
 
 def test_load_light_dataset(tmp_path):
