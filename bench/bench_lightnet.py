@@ -17,7 +17,8 @@ Usage (1 thread; the data set is cached outside the repo)::
     # the shipped weights: procedural galleries, the pisa probe and the two validation galleries held out
     OMP_NUM_THREADS=1 .venv/bin/python bench/bench_lightnet.py --galleries ~/.cache/dars/galleries/prior \
         --heldout-galleries ~/.cache/dars/galleries/validation/seed_1000000 ~/.cache/dars/galleries/validation/seed_1000001 \
-        --holdout-probes pisa --save toolkit/weights/lightnet_small.pt
+        --holdout-probes pisa --seeds 0-20,81-101 --steps 2000 --weight-decay 1e-3 --mix-data --seed 0 \
+        --save toolkit/weights/lightnet_small.pt    # --mix-data reads the render_lightings.py --seed 0 set above
     # the paper's network (hours on one CPU core; minutes on a GPU):
     .venv/bin/python bench/bench_lightnet.py --arch resnet34 --steps 8000 --save /tmp/lightnet_resnet34.pt
 """
