@@ -12,7 +12,7 @@ Usage (1 thread; the data set is cached outside the repo)::
     .venv/bin/python samples/render_lightings.py --seed 0                # ~2 min -> ~/.cache/dars/lightnet/...
     .venv/bin/python samples/render_lightings.py --seed 1 --rotations-per-probe 0 --train-skies 0 --mixtures 0 \
         --suns 0 --out ~/.cache/dars/lightnet/gallery_heldout_s1.npz      # a second, untouched held-out set
-    OMP_NUM_THREADS=1 .venv/bin/python bench/bench_lightnet.py --arch small --save toolkit/weights/lightnet_small.pt \
+    OMP_NUM_THREADS=1 .venv/bin/python bench/bench_lightnet.py --arch small --save /tmp/lightnet_room.pt \
         --eval-data ~/.cache/dars/lightnet/gallery_heldout_s1.npz
     # the shipped weights: procedural galleries, the pisa probe and the two validation galleries held out
     OMP_NUM_THREADS=1 .venv/bin/python bench/bench_lightnet.py --galleries ~/.cache/dars/galleries/prior \
