@@ -767,13 +767,13 @@ def infer_segment(path: str | os.PathLike, photos: Sequence, threads: int | None
         one uint8 [H, W] label image per photo, at the photo's size.
 
     Raises:
-        InferError: no ``segment.onnx`` (the run's scene had no trained built-in segmenter) or unreadable photos.
+        InferError: no ``segment.onnx`` (an old export) or unreadable photos.
     """
     f = Path(path)
     f = f / "segment.onnx" if f.is_dir() else f
     if not f.is_file():
-        raise InferError(f"{f} not found: the export has no segmentation network (train one with "
-                         "`dars priors segment SCENE --backend builtin`, then re-run `dars export-onnx`)")
+        raise InferError(f"{f} not found: the export has no segmentation network (an export made before dars "
+                         "shipped one); re-run `dars export-onnx RUN --out DIR`")
     sess = make_session(f, threads)
     name, sh_, sw_ = _image_input(sess)
     try:

@@ -247,10 +247,18 @@ def test_segmenter_and_light_networks(bundle):
     assert np.abs(got - ref).max() < 1e-4, np.abs(got - ref).max()
 
 
-def test_missing_segmenter_is_reported_with_reason(radiance_run, tmp_path):
+def test_segment_onnx_is_always_in_the_bundle(radiance_run, tmp_path):
+    """A run whose priors hold no fine-tuned segmenter ships the shipped one (which labelled its photos); a named
+    --segmenter that does not exist is reported with its reason."""
+    from toolkit.segment import DEFAULT_SEGMENTER
+
     rep = export_onnx_models(radiance_run, tmp_path / "o", cfg=FieldExportConfig(threads=1, check_render=False))
-    assert rep.segment["status"] == "unavailable" and "segmenter.pt" in rep.segment["reason"]
-    assert not (tmp_path / "o" / "segment.onnx").exists()
+    assert rep.segment["status"] == "exported" and rep.segment["source"] == str(DEFAULT_SEGMENTER)
+    assert rep.segment["max_abs_err"] <= 1e-4 and (tmp_path / "o" / "segment.onnx").is_file()
+    rep = export_onnx_models(radiance_run, tmp_path / "p", cfg=FieldExportConfig(
+        threads=1, check_render=False, segmenter=str(tmp_path / "nope.pt")))
+    assert rep.segment["status"] == "unavailable" and "nope.pt" in rep.segment["reason"]
+    assert not (tmp_path / "p" / "segment.onnx").exists()
 
 
 # ------------------------------------------------------------------------------------------------ radiance runs

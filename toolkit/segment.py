@@ -499,6 +499,10 @@ def train_segmenter(
         check_shape(metal, f"{dims['N']} {dims['H']} {dims['W']}", name="metal")
         metal_cpu = torch.where(labs_cpu == IGNORE_INDEX, torch.full_like(labs_cpu, IGNORE_INDEX),
                                 metal.cpu().long().clamp(0, 1))
+        # metal is rare (a few % of pixels): weight positives by sqrt(negatives / positives), as the classes
+        pos = float((metal_cpu == 1).sum())
+        neg = float((metal_cpu == 0).sum())
+        pos_weight = torch.tensor(math.sqrt(neg / pos) if pos > 0 and neg > 0 else 1.0, device=device)
     losses: list[float] = []
     t0 = time.time()
     steps = range(cfg.steps)
@@ -522,7 +526,8 @@ def train_segmenter(
             m = torch.stack([p[2] for p in pairs]).to(device)
             keep = m != IGNORE_INDEX
             if bool(keep.any()):
-                loss = loss + cfg.metal_weight * F.binary_cross_entropy_with_logits(metal_logit[keep], m[keep].float())
+                loss = loss + cfg.metal_weight * F.binary_cross_entropy_with_logits(metal_logit[keep], m[keep].float(),
+                                                                                    pos_weight=pos_weight)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
