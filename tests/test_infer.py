@@ -271,7 +271,7 @@ def test_missing_files_give_clear_messages(bundle, tmp_path):
     with pytest.raises(infer.InferError, match=r"background.npz is truncated or corrupt \(ValueError: not an .npz"):
         infer.load_model(partial)
     (partial / "segment.onnx").unlink()
-    with pytest.raises(infer.InferError, match="segment.onnx not found.*dars priors segment"):
+    with pytest.raises(infer.InferError, match="segment.onnx not found.*dars export-onnx"):
         infer.infer_segment(partial, [np.zeros((8, 8, 3), np.uint8)])
     with pytest.raises(infer.InferError, match="light.onnx not found"):
         infer.infer_light(tmp_path, [np.zeros((8, 8, 3), np.uint8)])

@@ -167,6 +167,7 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 
             scene = load_scene(args.scene, args.split)
             if not scene_has_priors(scene):
+                out.begin()  # the folder and its manifest (listing priors/) before the priors are written
                 priors = str(out.path / "priors")
                 if not (Path(priors) / "priors.json").is_file():
                     compute_priors(scene, priors, force=True)
