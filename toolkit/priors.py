@@ -155,6 +155,15 @@ def frame_labels(scene: "Scene", i: int, source: Literal["scene", "segment"],
     return torch.from_numpy(_fit_to_frame(scene, i, lab.astype(np.uint8), nearest=True).astype(np.int64))
 
 
+def frame_metal(scene: "Scene", i: int, segment_dir: str | os.PathLike) -> torch.Tensor:
+    """bool [H, W] predicted metal mask of frame ``i`` (``<segment_dir>/<key>_metal.png``, resized to the frame's
+    size like :func:`frame_labels`)."""
+    f = Path(segment_dir) / f"{scene.frames[i].key}_metal.png"
+    m = np.asarray(read_map(f, f"predicted metal mask {f}"))
+    m = (m[..., 0] if m.ndim == 3 else m) > 0
+    return torch.from_numpy(_fit_to_frame(scene, i, m.astype(np.uint8), nearest=True) > 0)
+
+
 def _fit_to_frame(scene: "Scene", i: int, arr: np.ndarray, nearest: bool) -> np.ndarray:
     """A prior map [h, w] of frame ``i`` resized to the frame's image size (a prior computed at another
     ``--downscale``): nearest for labels, area (shrinking) or linear (enlarging) for W."""
@@ -279,7 +288,7 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
         if not model:
             raise SegmentationError("backend 'onnx' needs --model FILE.onnx")
         info["model"] = str(model)
-    scfg = SegmentConfig(backend="provided" if backend == "provided" else "onnx" if backend == "onnx" else "builtin")
+    scfg = SegmentConfig(backend="builtin" if backend == "shipped" else backend)
 
     def _run(img):
         return segment_images(img[None], scfg, model=net if net is not None else model)
@@ -317,15 +326,18 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
                 mgt.append(scene.load_extra(i, "metal").bool())
     from .scene import SEMANTIC_CLASSES
 
-    def _report(p, g):
-        miou, per = mean_iou(torch.cat([x.reshape(-1) for x in p]), torch.cat([x.reshape(-1) for x in g]))
-        return miou, {c: (None if v != v else v) for c, v in zip(SEMANTIC_CLASSES, per)}
+    def _report(name, p, g, mp, mg):
+        """miou_<name>, per_class_<name> and, when every scored frame has a true metal mask, metal_iou_<name>."""
+        flat = lambda maps: torch.cat([x.reshape(-1) for x in maps])  # noqa: E731
+        miou, per = mean_iou(flat(p), flat(g))
+        info[f"miou_{name}"] = miou
+        info[f"per_class_{name}"] = {c: (None if v != v else v) for c, v in zip(SEMANTIC_CLASSES, per)}
+        if mg and len(mg) == len(g):
+            info[f"metal_iou_{name}"] = metal_iou(flat(mp), flat(mg), flat(g))
 
     if gts:
-        info["miou_heldout"], info["per_class_heldout"] = _report(preds, gts)
+        _report("heldout", preds, gts, mpred, mgt)
         info["heldout_views"] = len(gts)
-        if mgt and len(mgt) == len(gts):
-            info["metal_iou_heldout"] = metal_iou(*(torch.cat([x.reshape(-1) for x in v]) for v in (mpred, mgt, gts)))
     if eval_scene is not None and eval_scene.has_extra("semantic") and backend != "provided":
         ep, eg, emp, emg = [], [], [], []
         for i in _progress(range(len(eval_scene)), f"segment eval ({eval_scene.split})", len(eval_scene)):
@@ -335,11 +347,9 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
             if seg.metal is not None and "metal" in eval_scene.frames[i].extras:
                 emp.append(seg.metal[0] > 0.5)
                 emg.append(eval_scene.load_extra(i, "metal").bool())
-        info["miou_eval"], info["per_class_eval"] = _report(ep, eg)
+        _report("eval", ep, eg, emp, emg)
         info["eval_split"] = eval_scene.split
         info["eval_views"] = len(eg)
-        if emg and len(emg) == len(eg):
-            info["metal_iou_eval"] = metal_iou(*(torch.cat([x.reshape(-1) for x in v]) for v in (emp, emg, eg)))
     if sheet_rows:
         from .visualise import labelled_sheet
 
@@ -525,8 +535,7 @@ def priors_weights(scene, out_dir=None, cfg=None, labels: str = "auto", use_meta
                           [f"{k}.npy" for k in keys] + [f"{k}_overlay.png" for k in keys] + ["weights.json"], force)
     seg_dir = Path(segment_dir) if segment_dir is not None else scene.priors_dir("segment")
     if labels == "auto":  # predictions, never the scene's ground truth unless asked for
-        labels = "segment" if label_source(scene, "auto", seg_dir) != "none" and all(
-            (seg_dir / f"{f.key}.png").is_file() for f in scene.frames) else "none"
+        labels = "segment" if all((seg_dir / f"{f.key}.png").is_file() for f in scene.frames) else "none"
     if metal not in ("auto", "scene", "segment", "none"):
         raise ConfigError(f"metal={metal!r}: choose 'auto', 'scene', 'segment' or 'none'")
     metal_files = [seg_dir / f"{f.key}_metal.png" for f in scene.frames]
@@ -546,9 +555,7 @@ def priors_weights(scene, out_dir=None, cfg=None, labels: str = "auto", use_meta
         if metal == "scene":
             mask = scene.load_extra(i, "metal")
         elif metal == "segment":
-            m = np.asarray(read_map(metal_files[i], f"predicted metal mask {metal_files[i]}"))
-            mask = torch.from_numpy(_fit_to_frame(scene, i, ((m[..., 0] if m.ndim == 3 else m) > 0).astype(np.uint8),
-                                                  nearest=True) > 0)
+            mask = frame_metal(scene, i, seg_dir)
         else:
             mask = None
         wm = weight_map(img[None], lab, None if mask is None else mask[None], cfg)
@@ -658,10 +665,8 @@ def read_priors(scene: "Scene", priors_root: str | os.PathLike | None = None, *,
         mfiles = [seg_dir / f"{f.key}_metal.png" for f in scene.frames]
         if all(p.is_file() for p in mfiles):
             metal_mask = PackedViews.allocate(hs, ws, dtype=torch.bool)
-            for i, p in enumerate(mfiles):
-                m = np.asarray(read_map(p, f"predicted metal mask {p}"))
-                m = (m[..., 0] if m.ndim == 3 else m) > 0
-                metal_mask.write(i, torch.from_numpy(_fit_to_frame(scene, i, m.astype(np.uint8), nearest=True) > 0))
+            for i in range(V):
+                metal_mask.write(i, frame_metal(scene, i, seg_dir))
             metal_src = f"predicted ({seg_dir})"
     out = TrainingPriors(labels=labs, labels_source=lab_src, metal=metal_mask)
     out.metal_source = metal_src

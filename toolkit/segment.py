@@ -59,7 +59,6 @@ __all__ = [
     "load_segmenter",
     "DEFAULT_SEGMENTER",
     "SegmenterExport",
-    "shipped_segmenter_card",
     "work_resolution",
 ]
 
@@ -812,12 +811,3 @@ def load_segmenter(path: str | os.PathLike | None = None, map_location: str | to
     net.meta = dict(payload.get("extra") or {}, path=str(path))
     return net.to(map_location).eval()
 
-
-def shipped_segmenter_card() -> dict:
-    """The JSON card of the shipped segmenter (training data, seeds, held-out scores); {} when absent."""
-    card = DEFAULT_SEGMENTER.with_suffix(".json")
-    if not card.is_file():
-        return {}
-    import json
-
-    return json.loads(card.read_text())
