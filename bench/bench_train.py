@@ -265,12 +265,15 @@ def case_galleries(seeds: list[int], minutes: float, steps: int, threads: int, o
         geo = _asset_depth_and_preview(run, asset, threads)
         rows[seed] = {"steps": info["steps"], "train_wall_s": info["wall_s"], "peak_rss_mb": info["peak_rss_mb"],
                       "psnr": m.get("psnr"), "ssim": m.get("ssim"), "albedo_mae": m.get("albedo_mae"),
+                      "albedo_mae_aligned": res.details["materials"]["albedo_mae_aligned"],
+                      "metallic_mae": res.details["materials"]["metallic_mae"],
                       "normal_mae": m.get("normal_mae"), "miou": m.get("miou"), "env_light_l2": m.get("env_light_l2"),
                       **geo}
         print(f"[galleries] seed {seed}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                                        for k, v in rows[seed].items()), flush=True)
-    keys = ["psnr", "albedo_mae", "normal_mae", "depth_error_median_m", "preview_psnr", "field_psnr", "miou", "steps"]
-    worse_high = {"albedo_mae", "normal_mae", "depth_error_median_m"}
+    keys = ["psnr", "albedo_mae", "albedo_mae_aligned", "metallic_mae", "normal_mae", "depth_error_median_m",
+            "preview_psnr", "field_psnr", "miou", "steps"]
+    worse_high = {"albedo_mae", "albedo_mae_aligned", "metallic_mae", "normal_mae", "depth_error_median_m"}
     table = [[f"seed {s}"] + [r.get(k) for k in keys] for s, r in rows.items()]
 
     def agg(fn, k):

@@ -73,6 +73,10 @@ def test_every_metric_computed_when_data_supports_it(full_eval, run_dir):
     assert doc["per_view"][3]["psnr"] == pytest.approx(own, abs=1e-4)
     assert doc["env_light_l2"] == pytest.approx(float(env_light_l2(run.l_env, torch.tensor(GT_SH))), rel=1e-5)
     assert 0.0 <= doc["miou"] <= 1.0 and 0.0 <= doc["normal_mae"] <= 180.0
+    mat = doc["details"]["materials"]  # beside the table: the albedo error left after a per-channel scale
+    assert 0.0 <= mat["albedo_mae_aligned"] <= 1.0 and len(mat["albedo_scale"]) == 3
+    assert all(s > 0 for s in mat["albedo_scale"])
+    assert mat["metallic_mae"] is None or 0.0 <= mat["metallic_mae"] <= 1.0
 
 
 def test_view_consistency_patch_matches_independent_computation(full_eval, scene_gt):

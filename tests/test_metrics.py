@@ -16,6 +16,7 @@ from toolkit.metrics import (
     LPIPS_ENV_VAR,
     MetricUnavailable,
     albedo_mae,
+    albedo_mae_aligned,
     chamfer_distance,
     env_light_l2,
     flip,
@@ -25,6 +26,7 @@ from toolkit.metrics import (
     luminance,
     material_mask,
     mean_iou,
+    metallic_mae,
     normal_mae_deg,
     patch_masks,
     psnr,
@@ -388,6 +390,34 @@ def test_material_mask_and_albedo_roughness():
         material_mask(torch.tensor([[9]], dtype=torch.uint8))
     with pytest.raises(ShapeError, match=r"albedo_mae: pred must be \[B, 3, H, W\]"):
         albedo_mae(r_pred, r_gt, m)
+
+
+def test_albedo_mae_aligned_removes_a_per_channel_scale_only():
+    g = torch.Generator().manual_seed(0)
+    gt = torch.rand(2, 3, 8, 8, generator=g) * 0.8 + 0.1
+    m = torch.ones(2, 8, 8, dtype=torch.bool)
+    m[1, :4] = False
+    k = torch.tensor([2.5, 0.5, 1.25]).view(1, 3, 1, 1)
+    v, s = albedo_mae_aligned(gt / k, gt, m)  # a pure per-channel scale: aligned error 0, scale recovered
+    assert float(v) == pytest.approx(0.0, abs=1e-6)
+    np.testing.assert_allclose(s.numpy(), [2.5, 0.5, 1.25], rtol=1e-5)
+    assert float(albedo_mae(gt / k, gt, m)) > 0.1  # the raw MAE sees the scale
+    noisy = gt / k + 0.05 * torch.randn(gt.shape, generator=g)  # structure error stays after alignment
+    v2, s2 = albedo_mae_aligned(noisy, gt, m)
+    a, b = noisy.permute(0, 2, 3, 1)[m].double(), gt.permute(0, 2, 3, 1)[m].double()
+    ls = (a * b).sum(0) / (a * a).sum(0)  # independent least-squares fit
+    np.testing.assert_allclose(s2.numpy(), ls.numpy(), rtol=1e-5)
+    assert float(v2) == pytest.approx(float((a * ls - b).abs().mean()), rel=1e-5) and float(v2) > 0.02
+    with pytest.raises(MetricUnavailable, match="selects no pixels"):
+        albedo_mae_aligned(gt, gt, torch.zeros_like(m))
+
+
+def test_metallic_mae():
+    gt = torch.zeros(1, 2, 2)
+    gt[0, 0, 0] = 1.0
+    pred = torch.tensor([[[0.75, 0.5], [0.0, 1.0]]])
+    m = torch.tensor([[[True, True], [True, False]]])
+    assert float(metallic_mae(pred, gt, m)) == pytest.approx((0.25 + 0.5 + 0.0) / 3)
 
 
 def test_env_light_l2():

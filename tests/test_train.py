@@ -186,6 +186,14 @@ def test_cli_train_computes_its_priors_from_the_photos(tmp_path, capsys):
                  "--quiet", "--no-auto-priors"]) == 0
     cfg = json.loads((tmp_path / "bare" / "config.json").read_text())
     assert cfg["priors_root"] is None and cfg["priors"]["labels"] == "none" and not (tmp_path / "bare" / "priors").exists()
+    # --light-init ambient: the same light estimate, band 0 only
+    full = json.loads((run / "config.json").read_text())["l_env_init"]
+    assert main(["train", str(scene), "--out", str(tmp_path / "amb"), "--steps", "1", "--batch-rays", "256", "--quiet",
+                 "--priors", str(run / "priors"), "--light-init", "ambient"]) == 0
+    cfg = json.loads((tmp_path / "amb" / "config.json").read_text())
+    assert cfg["config"]["light_init"] == "ambient" and "band 0 only" in cfg["l_env_source"]
+    assert cfg["l_env_init"][0] == full[0] and all(v == 0.0 for row in cfg["l_env_init"][1:] for v in row)
+    assert any(v != 0.0 for row in full[1:] for v in row)
     capsys.readouterr()
 
 

@@ -18,6 +18,11 @@ key                    definition (computed when ...)
                        depth exists. Without GT labels: GT depth > 0, else GT normal ≠ 0, else every pixel.
                        Needs GT albedo and a decomposed (``pbr``) run.
 ``roughness_rmse``     pooled RMSE (eq. 35) of rendered vs GT ``roughness`` on the same mask. Same conditions.
+(details)              ``details.materials``, beside the table: ``albedo_mae_aligned`` — the albedo MAE after a
+                       per-channel least-squares scale to the GT (:func:`toolkit.metrics.albedo_mae_aligned`; photos
+                       fix albedo and light only up to a common scale, so this is the error light cannot explain) with
+                       that ``albedo_scale`` (> 1: the albedo is too dark); ``metallic_mae`` on the same mask when the
+                       split has GT ``metallic`` maps.
 ``env_light_l2``       ``||l_env - sh_gt||_2`` over the 27 SH coefficients (eq. 36): the run's global light vs the
                        scene's ``sh``. Needs GT SH and a ``pbr`` run (a standard NeRF has no light model).
 ``view_consistency``   eqs. 37-38: sample std over K = 10 uniformly spaced views (among the evaluated views in which
@@ -61,8 +66,8 @@ import torch
 
 from ._checks import DarsError
 from .io import linear_to_srgb, srgb_to_linear
-from .metrics import (MetricUnavailable, albedo_mae, env_light_l2, flip, load_lpips_weights, lpips, material_mask,
-                      mean_iou, normal_mae_deg, patch_masks, psnr, roughness_rmse, ssim, uniform_view_indices,
+from .metrics import (MetricUnavailable, albedo_mae, albedo_mae_aligned, env_light_l2, flip, load_lpips_weights, lpips,
+                      material_mask, mean_iou, metallic_mae, normal_mae_deg, patch_masks, psnr, roughness_rmse, ssim, uniform_view_indices,
                       view_consistency)
 from .scene import SEMANTIC_CLASSES, UNLABELLED, Cameras, Scene, load_scene
 
@@ -75,6 +80,9 @@ METRIC_KEYS: tuple[str, ...] = ("psnr", "ssim", "flip", "lpips", "albedo_mae", "
 
 JSON_SECTIONS: tuple[str, ...] = ("unavailable", "per_view", "details", "training", "eval")
 """The other top-level keys of ``metrics.json``."""
+
+_ALIGNED_MAX_PIXELS = 4_000_000
+"""At most this many masked pixels (a stride over each view's) feed ``details.materials.albedo_mae_aligned``."""
 
 _PER_VIEW_KEYS = ("psnr", "ssim", "flip", "lpips", "albedo_mae", "roughness_rmse", "normal_mae", "miou")
 
@@ -549,6 +557,8 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
         if cfg.figure_views else set()
     per_view: list[dict] = []
     pooled: dict[str, list[tuple[float, int]]] = {"albedo_mae": [], "roughness_rmse": [], "normal_mae": []}
+    aligned_px: list[tuple[torch.Tensor, torch.Tensor]] = []
+    pooled_metallic: list[tuple[float, int]] = []
     sem_pred, sem_gt = [], []
     mat_rule = ""
     samples_mean: list[float] = []
@@ -578,8 +588,15 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
             n_px = int(mask.sum())
             if n_px:
                 pred = out["albedo"].permute(2, 0, 1) if extra == "albedo" else out["roughness"]
-                row[key] = float(fn(pred, scene.load_extra(i, extra), mask))
+                gt_map = scene.load_extra(i, extra)
+                row[key] = float(fn(pred, gt_map, mask))
+                if extra == "albedo":  # a strided subset of the masked pixels for the scale-aligned MAE (details)
+                    stride = max(1, math.ceil(n_px * len(views) / _ALIGNED_MAX_PIXELS))
+                    aligned_px.append((pred[:, mask][:, ::stride], gt_map[:, mask][:, ::stride]))
             pooled[key].append((row[key], n_px))
+        if pbr and mask is not None and "metallic" in extras and int(mask.sum()):
+            pooled_metallic.append((float(metallic_mae(out["metallic"].reshape(mask.shape),
+                                                       scene.load_extra(i, "metallic"), mask)), int(mask.sum())))
         row["normal_mae"] = None
         if "normal_mae" not in unavailable:
             n_gt = scene.load_extra(i, "normal")
@@ -637,6 +654,11 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
         pixels[key] = sum(n for _, n in pooled[key])
         if metrics[key] is None:
             unavailable[key] = "the mask selects no pixel in any evaluated view"
+    material_extra = {"albedo_mae_aligned": None, "albedo_scale": None, "metallic_mae": _pool(pooled_metallic, "mean")}
+    if metrics.get("albedo_mae") is not None and aligned_px:
+        p_al, g_al = (torch.cat(t, 1)[:, None] for t in zip(*aligned_px))
+        v_al, s_al = albedo_mae_aligned(p_al, g_al, torch.ones(p_al.shape[1:], dtype=torch.bool))
+        material_extra.update(albedo_mae_aligned=float(v_al), albedo_scale=[round(float(x), 4) for x in s_al])
     metrics["env_light_l2"] = None
     if "env_light_l2" not in unavailable:
         metrics["env_light_l2"] = float(env_light_l2(run.l_env.detach().cpu().float(), sh_gt.float()))
@@ -671,6 +693,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
         "view_consistency": vc_detail,
         "miou_per_class": miou_per_class,
         "pixels": pixels,
+        "materials": material_extra,
         "sampling": sampling,
         "chamfer": None,
         "definitions": {
@@ -678,6 +701,9 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
             else "linear images as stored (FLIP/LPIPS on their sRGB encoding)",
             "material_mask": mat_rule or None,
             "normal_mask": "GT normal non-zero (surface pixels)",
+            "albedo_mae_aligned": "albedo MAE after a per-channel least-squares scale to the ground truth "
+                                  "(metrics.albedo_mae_aligned; albedo_scale > 1: the albedo is too dark), same mask",
+            "metallic_mae": "mean |metallic - GT metallic| on the material mask",
             "semantics": "argmax of rendered logits; 255 where rendered opacity < 0.5",
             "pooling": "psnr/ssim/flip/lpips: mean of per-view values; albedo/roughness/normal: over all masked "
                        "pixels of all views; miou: one confusion over all views",

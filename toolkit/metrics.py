@@ -47,6 +47,8 @@ __all__ = [
     "load_lpips_weights",
     "LPIPS_ENV_VAR",
     "albedo_mae",
+    "albedo_mae_aligned",
+    "metallic_mae",
     "roughness_rmse",
     "material_mask",
     "env_light_l2",
@@ -533,6 +535,37 @@ def albedo_mae(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> 
         MetricUnavailable: the mask selects no pixels. ShapeError: shape mismatch.
     """
     a, b = _pooled_pixels(pred, target, mask, "albedo_mae", 3)
+    return (a - b).abs().mean()
+
+
+def albedo_mae_aligned(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Albedo MAE after a per-channel least-squares scale: the part of the albedo error that light cannot explain.
+
+    From photos alone, albedo and light are known only up to a common scale per colour channel (a twice brighter
+    light and a half as bright albedo render the same photo), so papers on inverse rendering (NeRFactor, InvRender,
+    TensoIR) also score albedo after aligning its scale to the ground truth. ``s_c = Σ p_c g_c / Σ p_c²`` over the
+    masked pixels, then ``mean |s_c p_c - g_c|`` as in :func:`albedo_mae`. Report it *beside* ``albedo_mae``, never
+    instead of it: a user's asset carries the unaligned albedo.
+
+    Args:
+        pred, target, mask: as :func:`albedo_mae`.
+
+    Returns:
+        (MAE, float 0-dim tensor; scale, float [3] tensor — above 1: the prediction is too dark).
+
+    Raises:
+        MetricUnavailable: the mask selects no pixels. ShapeError: shape mismatch.
+    """
+    a, b = _pooled_pixels(pred, target, mask, "albedo_mae_aligned", 3)
+    a64, b64 = a.double(), b.double()
+    scale = (a64 * b64).sum(0) / (a64 * a64).sum(0).clamp_min(1e-12)
+    return (a64 * scale - b64).abs().mean().to(pred.dtype), scale.to(pred.dtype)
+
+
+def metallic_mae(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Metallic mean absolute error over masked pixels of the whole batch (shapes as :func:`roughness_rmse`)."""
+    a, b = _pooled_pixels(pred, target, mask, "metallic_mae", 1)
     return (a - b).abs().mean()
 
 

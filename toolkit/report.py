@@ -438,6 +438,12 @@ def _eval_markdown(doc: dict, written: dict[str, Path]) -> str:
     L += ["## Per-view metrics", ""]
     cols = ["psnr", "ssim", "flip", "lpips", "albedo_mae", "roughness_rmse", "normal_mae", "miou", "samples_per_ray"]
     L += [_md_table(["view"] + cols, [[r["key"]] + [_fmt(r.get(c)) for c in cols] for r in doc["per_view"]]), ""]
+    mat = det.get("materials") or {}
+    if mat.get("albedo_mae_aligned") is not None or mat.get("metallic_mae") is not None:
+        L += [f"Materials beside the table: albedo MAE after a per-channel scale to the ground truth "
+              f"{_fmt(mat.get('albedo_mae_aligned'), '{:.4f}')} (scale {mat.get('albedo_scale')}: albedo and light are "
+              "known only up to a common scale from photos; above 1 the albedo is too dark), metallic MAE "
+              f"{_fmt(mat.get('metallic_mae'), '{:.4f}')}.", ""]
     if det.get("miou_per_class"):
         L += ["Per-class IoU: " + ", ".join(f"{k} {_fmt(v, '{:.3f}')}" for k, v in det["miou_per_class"].items()), ""]
     ch = det.get("chamfer")

@@ -44,6 +44,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--no-semantics", action="store_true",
                    help="ablation: no semantic input (no L_semantic, no label edges in W; L_mat keeps its class terms)")
     q.add_argument("--fixed-light", action="store_true", help="ablation: l_env fixed at its initial value")
+    q.add_argument("--light-init", default="full", choices=["full", "ambient"],
+                   help="how the light prior starts l_env: all 9 SH coefficients (full) or only band 0, its level and "
+                        "colour (ambient; the directions are then left to the eq. 22 light stage)")
     q.add_argument("--no-mat-loss", action="store_true", help="ablation: no L_mat")
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
     q.add_argument("--albedo-supervision", action="store_true",
@@ -109,6 +112,7 @@ _RESUME_OPTIONS = (
     ("--no-dars", "no_dars", lambda m: not m["config"].get("sampler", {}).get("dars", True), lambda v: v or None),
     ("--no-semantics", "no_semantics", lambda m: not m["config"].get("semantics", True), lambda v: v or None),
     ("--fixed-light", "fixed_light", lambda m: bool(m["config"].get("fixed_light")), lambda v: v or None),
+    ("--light-init", "light_init", lambda m: m["config"].get("light_init", "full"), lambda v: None if v == "full" else v),
     ("--no-mat-loss", "no_mat_loss", lambda m: m["config"].get("losses", {}).get("mat", 1.0) == 0, lambda v: v or None),
     ("--baseline", "baseline", lambda m: "nerf" if m["config"].get("shading") == "radiance" else None, lambda v: v),
     ("--albedo-supervision", "albedo_supervision", lambda m: bool(m["config"].get("albedo_supervision")),
@@ -185,6 +189,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides["semantics"] = False
     if args.fixed_light:
         overrides["fixed_light"] = True
+    if args.light_init != "full":
+        overrides["light_init"] = args.light_init
     if args.no_mat_loss:
         overrides["mat_loss"] = False
     if args.baseline:

@@ -82,6 +82,9 @@ class TrainConfig:
     Runs saved before this field existed turned both off with ``semantics=False``; :meth:`TrainConfig.from_dict`
     loads them as ``mat_labels=semantics``, so they resume exactly as they were trained."""
     fixed_light: bool = False
+    light_init: Literal["full", "ambient"] = "full"
+    """How the light prior starts l_env: ``full`` — all 9 SH coefficients of the estimate; ``ambient`` — only its
+    band 0 (level and colour; the directional bands start at 0 and only the eq. 22 light stage learns them)."""
     labels: Literal["predicted", "ground-truth", "none"] = "predicted"
     """Where semantic labels and metal masks come from: ``predicted`` — the segmentation prior
     (``<priors>/segment/``; none when it was not run); ``ground-truth`` — the scene's own ``semantic_path`` and
@@ -129,6 +132,7 @@ class TrainConfig:
         check_choice(self.background, ("auto", "constant", "learned", "env"), "background")
         check_choice(self.scene_type, ("auto", "unbounded", "room", "object"), "scene_type")
         check_choice(self.labels, ("predicted", "ground-truth", "none"), "labels")
+        check_choice(self.light_init, ("full", "ambient"), "light_init")
         if self.batch_rays < 16:
             raise ConfigError(f"batch_rays={self.batch_rays} must be >= 16")
         if self.steps < 0 or self.minutes < 0:

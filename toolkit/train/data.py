@@ -171,6 +171,10 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         priors["weights"] = pri.weights_source
     if pri.light is not None:
         l_env, l_src = pri.light, pri.light_source
+        if cfg.light_init == "ambient":
+            l_env = l_env.clone()
+            l_env[1:] = 0.0
+            l_src += " (band 0 only: light_init=ambient)"
     else:
         mean = lin_sum / lin_n if lin_n else all_sum / max(all_n, 1)
         l_env, l_src = grey_ambient_sh(mean), "grey ambient"
