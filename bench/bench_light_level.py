@@ -1,0 +1,108 @@
+"""How well is the *level* of the room's light known from photos? Band 0 of the SH light (its brightness and colour)
+sets the albedo's scale: photos fix albedo and light only up to a common factor per channel, so a light estimated
+2x too dim gives an albedo 2x too bright. This benchmark scores three estimates of band 0 against the ground truth on
+rendered galleries, per gallery and as mean / median / worst of ``|log(estimate / truth)|`` (mean over channels):
+
+* ``net``: the shipped light network (``toolkit/weights/lightnet_small.pt``), mean over the training views, as
+  ``dars priors light`` computes it;
+* ``grey``: the trainer's grey-ambient start (an albedo-0.5 surface at the photos' mean linear brightness);
+* ``max(x, bound_p)``: either, raised to a physical lower bound — a diffuse surface of albedo <= 1 under a light of
+  level ``L00 * Y00`` reflects at most that radiance, so ``L00 >= q_p / Y00`` with ``q_p`` the p-quantile of the
+  photos' linear pixel radiance (per channel). Speculars, lamps and sky break the bound for high p.
+
+Usage (1 thread, a few seconds per gallery; pass galleries the light network was not trained on — see the card
+``toolkit/weights/lightnet_small.json``)::
+
+    OMP_NUM_THREADS=1 .venv/bin/python bench/bench_light_level.py ~/.cache/dars/galleries/prior/seed_{21..35} \\
+        ~/.cache/dars/galleries/prior/seed_{102..116} ~/.cache/dars/galleries/prior/seed_{11,83,85,88,89,92,95,101}
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from toolkit.io import srgb_to_linear  # noqa: E402
+from toolkit.lightnet import aggregate_sh, load_lightnet, predict_sh  # noqa: E402
+from toolkit.scene import load_scene  # noqa: E402
+from toolkit.sh import SH_C0  # noqa: E402
+from toolkit.train.data import grey_ambient_sh  # noqa: E402
+
+QUANTILES = (0.9, 0.95, 0.98, 0.99)
+
+
+def gallery_levels(path: str, model) -> dict | None:
+    """Band 0 (float [3] each) of the truth, the network, the grey start and the bounds of one gallery's training views."""
+    sc = load_scene(path, "train")
+    if sc.sh is None:
+        print(f"[light-level] {path}: no ground-truth 'sh', skipped")
+        return None
+    imgs = torch.stack([sc.load_image(i) for i in range(len(sc))]).float()
+    srgb = imgs if sc.srgb else None
+    if srgb is None:  # linear HDR photos: the network reads 8-bit-style sRGB
+        from toolkit.io import linear_to_srgb
+
+        srgb = linear_to_srgb(imgs.clamp(0, 1))
+    lin = srgb_to_linear(srgb)
+    pix = lin.permute(1, 0, 2, 3).reshape(3, -1)
+    pix = pix[:, :: max(1, pix.shape[1] // 2_000_000)]  # torch.quantile's input limit
+    row = {"gallery": path, "truth": sc.sh[0].float().numpy(),
+           "net": aggregate_sh(predict_sh(model, srgb), "mean")[0].numpy(),
+           "grey": grey_ambient_sh(float(lin.mean()))[0].numpy()}
+    for p in QUANTILES:
+        row[f"bound{p}"] = (torch.quantile(pix, p, dim=1) / SH_C0).numpy()
+    return row
+
+
+def log_error(est: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.abs(np.log(np.maximum(est, 1e-3) / np.maximum(truth, 1e-3))).mean())
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("galleries", nargs="+", help="rendered gallery folders (transforms_train.json with 'sh')")
+    ap.add_argument("--weights", default=None, help="light network weights (default: the shipped ones)")
+    ap.add_argument("--json", default=str(ROOT / "bench" / "out" / "light_level.json"))
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    model = load_lightnet(args.weights)
+    rows = [r for r in (gallery_levels(g, model) for g in args.galleries) if r is not None]
+    if not rows:
+        print("[light-level] no gallery with ground-truth SH")
+        return 1
+    cands = {"net": lambda r: r["net"], "grey": lambda r: r["grey"]}
+    for p in QUANTILES:
+        cands[f"max(net, bound{p})"] = (lambda q: lambda r: np.maximum(r["net"], r[f"bound{q}"]))(p)
+        cands[f"max(grey, bound{p})"] = (lambda q: lambda r: np.maximum(r["grey"], r[f"bound{q}"]))(p)
+    print(f"{'gallery':40s} {'truth':>6s} {'net':>6s} {'grey':>6s}  (band 0, mean over channels)")
+    for r in rows:
+        print(f"{Path(r['gallery']).name:40s} {r['truth'].mean():6.2f} {r['net'].mean():6.2f} {r['grey'].mean():6.2f}")
+    summary = {}
+    print(f"\n{'estimate of band 0':24s} |log(estimate/truth)|: mean  median  worst   (n = {len(rows)} galleries)")
+    for k, f in cands.items():
+        e = np.array([log_error(f(r), r["truth"]) for r in rows])
+        summary[k] = {"mean": float(e.mean()), "median": float(np.median(e)), "worst": float(e.max())}
+        print(f"{k:24s} {e.mean():27.3f} {np.median(e):7.3f} {e.max():6.3f}")
+    ref = summary["grey"]["mean"]
+    print(f"ratio net / grey (mean): {summary['net']['mean'] / ref:.3f}")
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    doc = {"galleries": [r["gallery"] for r in rows], "summary": summary,
+           "per_gallery": [{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()} for r in rows]}
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(doc, indent=1))
+    tmp.replace(out)
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
