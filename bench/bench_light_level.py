@@ -30,7 +30,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from toolkit.io import srgb_to_linear  # noqa: E402
+from toolkit.io import linear_to_srgb, srgb_to_linear  # noqa: E402
 from toolkit.lightnet import aggregate_sh, load_lightnet, predict_sh  # noqa: E402
 from toolkit.scene import load_scene  # noqa: E402
 from toolkit.sh import SH_C0  # noqa: E402
@@ -46,11 +46,7 @@ def gallery_levels(path: str, model) -> dict | None:
         print(f"[light-level] {path}: no ground-truth 'sh', skipped")
         return None
     imgs = torch.stack([sc.load_image(i) for i in range(len(sc))]).float()
-    srgb = imgs if sc.srgb else None
-    if srgb is None:  # linear HDR photos: the network reads 8-bit-style sRGB
-        from toolkit.io import linear_to_srgb
-
-        srgb = linear_to_srgb(imgs.clamp(0, 1))
+    srgb = imgs if sc.srgb else linear_to_srgb(imgs.clamp(0, 1))  # the network reads 8-bit-style sRGB
     lin = srgb_to_linear(srgb)
     pix = lin.permute(1, 0, 2, 3).reshape(3, -1)
     pix = pix[:, :: max(1, pix.shape[1] // 2_000_000)]  # torch.quantile's input limit

@@ -67,8 +67,8 @@ import torch
 from ._checks import DarsError
 from .io import linear_to_srgb, srgb_to_linear
 from .metrics import (MetricUnavailable, albedo_mae, albedo_mae_aligned, env_light_l2, flip, load_lpips_weights, lpips,
-                      material_mask, mean_iou, metallic_mae, normal_mae_deg, patch_masks, psnr, roughness_rmse, ssim, uniform_view_indices,
-                      view_consistency)
+                      material_mask, mean_iou, metallic_mae, normal_mae_deg, patch_masks, psnr, roughness_rmse, ssim,
+                      uniform_view_indices, view_consistency)
 from .scene import SEMANTIC_CLASSES, UNLABELLED, Cameras, Scene, load_scene
 
 __all__ = ["METRIC_KEYS", "JSON_SECTIONS", "EvalConfig", "EvalResult", "EvalFigures", "evaluate_run",
@@ -594,9 +594,10 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
                     stride = max(1, math.ceil(n_px * len(views) / _ALIGNED_MAX_PIXELS))
                     aligned_px.append((pred[:, mask][:, ::stride], gt_map[:, mask][:, ::stride]))
             pooled[key].append((row[key], n_px))
-        if pbr and mask is not None and "metallic" in extras and int(mask.sum()):
+        n_mat = 0 if mask is None else int(mask.sum())
+        if pbr and n_mat and "metallic" in extras:
             pooled_metallic.append((float(metallic_mae(out["metallic"].reshape(mask.shape),
-                                                       scene.load_extra(i, "metallic"), mask)), int(mask.sum())))
+                                                       scene.load_extra(i, "metallic"), mask)), n_mat))
         row["normal_mae"] = None
         if "normal_mae" not in unavailable:
             n_gt = scene.load_extra(i, "normal")
