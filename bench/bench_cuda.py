@@ -115,7 +115,8 @@ def main(argv: list[str] | None = None) -> int:
         runs = out / "runs"
         _train(cli, a.scene, runs / "time_cpu", a.cpu_steps, "cpu")
         sps_cpu, n1 = _sec_per_step(runs / "time_cpu")
-        _say(out, f"step time, {Path(a.scene).name}, fast preset: CPU ({os.cpu_count()} cores) {sps_cpu * 1000:.0f} ms/step "
+        _say(out, f"step time, {Path(a.scene).name}, fast preset: CPU ({os.cpu_count()} cores) "
+                  f"{sps_cpu * 1000:.0f} ms/step "
                   f"(steps {n1[0]}..{n1[1]})")
         if cuda:
             _train(cli, a.scene, runs / "time_gpu", a.gpu_steps, "cuda")

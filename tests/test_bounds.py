@@ -3,8 +3,8 @@ import pytest
 import torch
 
 from toolkit._checks import ConfigError
-from toolkit.bounds import (SceneBoxConfig, SparsePointsConfig, box_from_cameras, scene_box_from_points,
-                            triangulate_sparse_points)
+from toolkit.bounds import (SceneBoxConfig, SparsePoints, SparsePointsConfig, box_from_cameras, scene_box_from_points,
+                            sparse_depth_targets, triangulate_sparse_points)
 
 
 def _ring(n=12, radius=3.0, inward=True):
@@ -78,3 +78,39 @@ def test_triangulated_points_of_the_sample_lie_on_its_surfaces(sample_scene_path
     painting_centre = np.array([-0.6, 0.985, 1.45])
     assert np.all(box.aabb[0] < painting_centre) and np.all(box.aabb[1] > painting_centre)
     assert torch.is_tensor(scene.aabb)
+
+
+def test_sparse_depth_targets_match_the_samples_depth_maps(sample_scene_path):
+    """Each triangulated point projected into its two views: the pixel's ground-truth depth (scoring only) agrees."""
+    from toolkit.scene import load_scene
+
+    scene = load_scene(sample_scene_path, "train")
+    sp = triangulate_sparse_points(scene, SparsePointsConfig(max_views=24, neighbours=3, max_side=128))
+    sd = sparse_depth_targets(scene, sp)
+    assert len(sd["depth"]) == len(sd["views"]) == len(sd["rows"]) == len(sd["cols"])
+    assert len(sd["depth"]) > 1.8 * len(sp)  # both views of almost every point
+    assert set(sd["views"].unique().tolist()) <= set(sp.views.reshape(-1).tolist())
+    rel = []
+    for v in sd["views"].unique().tolist():
+        m = sd["views"] == v
+        gt = scene.load_extra(v, "depth").reshape(scene.cameras.height[v], scene.cameras.width[v])
+        g = gt[sd["rows"][m], sd["cols"][m]]
+        rel.append((sd["depth"][m] - g).abs() / g.clamp_min(1e-3))
+    rel = torch.cat(rel)
+    assert float(rel.median()) < 0.03
+
+
+def test_sparse_depth_targets_drop_points_outside_or_behind_the_view(tmp_path):
+    """A point behind the camera and one far outside its frustum give no target; an empty set gives empty tensors."""
+    from synthetic import make_scene
+    from toolkit.scene import load_scene
+
+    scene = load_scene(make_scene(tmp_path / "s", n_train=3, n_test=1, size=16), "train")
+    c2w = scene.cameras.c2w[0].double().numpy()
+    fwd = -c2w[:3, 2]
+    pts = np.stack([c2w[:3, 3] + 2.0 * fwd, c2w[:3, 3] - 2.0 * fwd, c2w[:3, 3] + 2.0 * fwd + 50.0 * c2w[:3, 0]])
+    sd = sparse_depth_targets(scene, SparsePoints(points=pts, views=np.array([[0, 0]] * 3), n_pairs=1))
+    assert len(sd["depth"]) == 2 and torch.allclose(sd["depth"], torch.tensor([2.0, 2.0]), atol=1e-4)
+    none = SparsePoints(points=np.zeros((0, 3)), views=np.zeros((0, 2), np.int64), n_pairs=0)
+    empty = sparse_depth_targets(scene, none)
+    assert all(len(t) == 0 for t in empty.values())

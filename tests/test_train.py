@@ -218,6 +218,43 @@ def test_normal_losses_point_normals_out_of_the_surface():
     assert (-n.grad[:, 2] > 0).all()
 
 
+def test_sparse_depth_loss_wants_the_weight_at_the_known_depth():
+    """Zero for an opaque ray whose weight sits at t*; a fog spread around t* and a transparent ray both cost; the
+    gradient moves weight toward t*."""
+    from toolkit.losses import sparse_depth_loss
+
+    t = torch.tensor([1.0, 2.0, 3.0, 1.0, 2.0, 3.0, 1.0, 2.0, 3.0])
+    ri = torch.tensor([0, 0, 0, 1, 1, 1, 2, 2, 2])
+    target = torch.tensor([2.0, 2.0, 2.0])
+    at = torch.tensor([0.0, 1.0, 0.0])
+    fog = torch.tensor([1 / 3, 1 / 3, 1 / 3])
+    empty = torch.zeros(3)
+    assert float(sparse_depth_loss(torch.cat([at, at, at]), t, ri, target, 3)) == pytest.approx(0.0)
+    # fog: 2 x (1/3 x 1/2) on its ray -> 1/3, mean over 3 rays
+    assert float(sparse_depth_loss(torch.cat([at, fog, at]), t, ri, target, 3)) == pytest.approx(1 / 9)
+    assert float(sparse_depth_loss(torch.cat([at, at, empty]), t, ri, target, 3)) == pytest.approx(1 / 3)
+    w = torch.cat([fog, fog, fog]).requires_grad_(True)
+    sparse_depth_loss(w, t, ri, target, 3).backward()
+    assert (w.grad[1::3] < w.grad[0::3]).all() and (w.grad[1::3] < w.grad[2::3]).all()
+    assert float(sparse_depth_loss(torch.zeros(0), torch.zeros(0), torch.zeros(0, dtype=torch.long), target[:0], 0)) == 0
+
+
+def test_sparse_depth_option_trains_and_is_recorded(sample_scene_path, tmp_path):
+    """`losses.sparse_depth` > 0: targets triangulated from the photos, the term is logged, the weight recorded."""
+    import dataclasses
+
+    cfg = _small(steps=6, pretrain_fraction=0.5)
+    cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, sparse_depth=0.1))
+    lines = []
+    train(sample_scene_path, tmp_path / "r", cfg, progress_bar=False, log=lines.append)
+    assert any("sparse depth:" in m and "pixels with a triangulated depth" in m for m in lines), lines
+    rows = [json.loads(l) for l in open(tmp_path / "r" / "log.jsonl")]
+    vals = [r["sparse_depth"] for r in rows if r.get("kind") == "train" and "sparse_depth" in r]
+    assert vals and all(math.isfinite(v) and v >= 0 for v in vals)
+    saved = json.load(open(tmp_path / "r" / "config.json"))["config"]["losses"]
+    assert saved["sparse_depth"] == 0.1
+
+
 # ------------------------------------------------------------------------------------------------ room prior
 def test_scene_type_auto_unbounded_for_the_gallery_object_for_lego(sample_scene_path):
     """Photos with no transparent pixel (the sample's RGBA PNGs are opaque everywhere; the tiny Lego's RGB on white)

@@ -24,7 +24,8 @@ import torch
 
 from ._checks import ConfigError
 
-__all__ = ["SparsePointsConfig", "SparsePoints", "triangulate_sparse_points", "SceneBoxConfig", "SceneBox",
+__all__ = ["SparsePointsConfig", "SparsePoints", "triangulate_sparse_points", "sparse_depth_targets",
+           "SceneBoxConfig", "SceneBox",
            "scene_box_from_points", "box_from_cameras"]
 
 
@@ -174,6 +175,34 @@ def triangulate_sparse_points(scene, cfg: SparsePointsConfig = SparsePointsConfi
     if log is not None:
         log(f"[dars] sparse points: {len(pts)} triangulated from {len(pairs)} view pairs of {len(views)} views")
     return SparsePoints(points=pts, views=vv.astype(np.int64), n_pairs=len(pairs))
+
+
+def sparse_depth_targets(scene, points: SparsePoints) -> dict[str, torch.Tensor]:
+    """Pixels with a known depth: each sparse point projected into the two views it was triangulated from.
+
+    Returns ``{"views", "rows", "cols"}`` (int64 [K]) and ``"depth"`` (float32 [K], metres along the camera axis, the
+    convention of rendered depth); points that land outside their view or behind it are dropped (K may be 0).
+    """
+    cams = scene.cameras
+    c2w = cams.c2w.double().numpy()
+    Ks = cams.intrinsics().double().numpy()
+    W = cams.width.numpy()
+    H = cams.height.numpy()
+    views, rows, cols, depths = [], [], [], []
+    for j in (0, 1):
+        for v in np.unique(points.views[:, j]) if len(points) else []:
+            sel = points.views[:, j] == v
+            uv, d = _project(c2w[v], Ks[v], points.points[sel])
+            c, r = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+            ok = (d > 0) & (c >= 0) & (r >= 0) & (c < W[v]) & (r < H[v])
+            views.append(np.full(int(ok.sum()), v, np.int64))
+            rows.append(r[ok])
+            cols.append(c[ok])
+            depths.append(d[ok])
+    cat = (lambda xs, dt: torch.from_numpy(np.concatenate(xs).astype(dt)) if xs else torch.zeros(0, dtype=torch.int64))
+    out = {"views": cat(views, np.int64), "rows": cat(rows, np.int64), "cols": cat(cols, np.int64)}
+    out["depth"] = torch.from_numpy(np.concatenate(depths).astype(np.float32)) if depths else torch.zeros(0)
+    return out
 
 
 def box_from_cameras(c2w: np.ndarray, fx: np.ndarray, width: np.ndarray) -> np.ndarray:

@@ -48,6 +48,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="how the light prior starts l_env: all 9 SH coefficients (full) or only band 0, its level and "
                         "colour (ambient; the directions are then left to the eq. 22 light stage)")
     q.add_argument("--no-mat-loss", action="store_true", help="ablation: no L_mat")
+    q.add_argument("--sparse-depth", type=NONNEGATIVE, default=0.0, metavar="W",
+                   help="weight of the sparse-depth loss: rays through triangulated feature points end at their "
+                        "depth (photos and poses only; default 0 = off)")
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
     q.add_argument("--albedo-supervision", action="store_true",
                    help="use the scene's ground-truth albedo maps in L_mat (eq. 20); makes albedo MAE circular")
@@ -118,6 +121,8 @@ _RESUME_OPTIONS = (
     ("--albedo-supervision", "albedo_supervision", lambda m: bool(m["config"].get("albedo_supervision")),
      lambda v: v or None),
     ("--batch-rays", "batch_rays", lambda m: m["config"].get("batch_rays"), lambda v: v or None),
+    ("--sparse-depth", "sparse_depth", lambda m: m["config"].get("losses", {}).get("sparse_depth", 0.0) or None,
+     lambda v: v or None),
     ("--labels", "labels", lambda m: m["config"].get("labels", "predicted"), lambda v: None if v == "predicted" else v),
 )
 """Options that define a run: with ``--resume`` they must match the saved run (only its length may grow)."""
@@ -204,6 +209,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     if snapshots:
         overrides["snapshot_minutes"] = snapshots
     cfg = make_config(args.preset or "fast", **overrides)
+    if args.sparse_depth:
+        from dataclasses import replace
+
+        cfg = replace(cfg, losses=replace(cfg.losses, sparse_depth=float(args.sparse_depth)))
     priors = args.priors
     try:
         if not args.resume and priors is None and not args.no_auto_priors and cfg.shading != "radiance":

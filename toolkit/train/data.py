@@ -59,6 +59,8 @@ class TrainData:
         albedo_gt: float16 [P, 3] linear ground-truth albedo (only with albedo supervision) or None.
         l_env_init: float [9, 3] initial light and where it came from.
         colour_init: ColourTransforms or None.
+        sparse_depth: pixels with a known depth (``losses.sparse_depth`` > 0;
+            :func:`toolkit.bounds.sparse_depth_targets`) or None.
     """
 
     scene: Scene
@@ -72,6 +74,7 @@ class TrainData:
     l_env_source: str
     colour_init: Any
     priors_used: dict
+    sparse_depth: dict | None = None
 
     @property
     def nbytes(self) -> int:
@@ -184,9 +187,18 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
     elif cfg.colour_correction == "on":
         priors["colour"] = "identity (learned)"
     log("[dars] priors: " + ", ".join(f"{k}={v}" for k, v in priors.items()))
+    sparse = None
+    if cfg.losses.sparse_depth > 0 and with_images:
+        from ..bounds import sparse_depth_targets, triangulate_sparse_points
+
+        sparse = sparse_depth_targets(scene, triangulate_sparse_points(scene, log=log))
+        log(f"[dars] sparse depth: {len(sparse['depth'])} pixels with a triangulated depth "
+            f"(weight {cfg.losses.sparse_depth:g})" + ("; none: the loss is off" if not len(sparse["depth"]) else ""))
+        if not len(sparse["depth"]):
+            sparse = None
     return TrainData(scene=scene, images=images, labels=labels, metal=metal, weights=wm, distortion=dist,
                      albedo_gt=albedo_gt, l_env_init=l_env, l_env_source=l_src, colour_init=pri.colour,
-                     priors_used=priors)
+                     priors_used=priors, sparse_depth=sparse)
 
 
 def _layout_only(heights: torch.Tensor, widths: torch.Tensor) -> PackedViews:

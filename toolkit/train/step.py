@@ -15,7 +15,7 @@ from .._checks import DarsError
 from ..field import DarsField
 from ..io import linear_to_srgb, srgb_to_linear
 from ..losses import (compactness_loss, light_residual_loss, material_loss, normal_consistency_loss, orientation_loss, psnr_loss, rgb_l1,
-                      semantic_loss, ssim_loss)
+                      semantic_loss, sparse_depth_loss, ssim_loss)
 from ..pipeline import Background, DarsContext, RenderConfig, RenderInputs, render_rays
 from ..pixels import PackedViews
 from ..sampling import OccupancyGrid, build_ray_sampler, neighbour_views, select_rays
@@ -228,6 +228,31 @@ def sample_batch(state: TrainState, data: TrainData) -> Batch:
                  None if patch_iw is None else patch_iw.to(dev))
 
 
+SPARSE_DEPTH_RAYS = 256
+"""Rays per step through pixels with a triangulated depth (``losses.sparse_depth``), on top of ``batch_rays``."""
+
+
+def _sparse_depth_term(state: TrainState, data: TrainData) -> torch.Tensor:
+    """:func:`toolkit.losses.sparse_depth_loss` on ``SPARSE_DEPTH_RAYS`` rays drawn from ``data.sparse_depth``."""
+    sd, dev, scene = data.sparse_depth, state.device, data.scene
+    k = len(sd["depth"])
+    pick = torch.randint(0, k, (min(k, SPARSE_DEPTH_RAYS),), generator=state.generator)
+    views, rows, cols = sd["views"][pick], sd["rows"][pick], sd["cols"][pick]
+    bounds = state.field.space if state.cfg.field.contraction else scene.aabb.to(dev)
+    rays = generate_rays(state.dars.cameras, views.to(dev), pixels=torch.stack([cols, rows], -1).to(dev),
+                         aabb=bounds, near=scene.near, far=scene.far)
+    wray = data.weights.gather(data.weights.flat_index(views, rows, cols)).to(dev)
+    cfg = state.cfg
+    inputs = RenderInputs(state.occupancy, state.l_env.detach(), state.background,
+                          dars=state.dars if cfg.sampler.dars else None)
+    out = render_rays(state.field, rays, RenderConfig(sampler=cfg.sampler, shading=cfg.shading, deferred=True),
+                      inputs, wray if cfg.sampler.dars else None, state.generator)
+    ri = out.sample_ray_indices
+    t = ((out.sample_points - rays.origins[ri]) * rays.directions[ri]).sum(-1)
+    t_target = sd["depth"][pick].to(dev) / rays.z_scale.reshape(-1)  # camera-axis depth -> distance along the ray
+    return sparse_depth_loss(out.weights, t, ri, t_target, len(pick))
+
+
 def _to_target_space(state: TrainState, data: TrainData, rgb_linear: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
     if state.colour is not None:
         rgb_linear = state.colour(rgb_linear, views)
@@ -300,6 +325,8 @@ def train_step(state: TrainState, data: TrainData) -> dict:
                                                     out.weights)
         else:
             terms["orientation"] = orientation_loss(out.normal, batch.rays.directions, out.opacity)
+    if lw.sparse_depth > 0 and data.sparse_depth is not None:
+        terms["sparse_depth"] = _sparse_depth_term(state, data)
     if cfg.semantics and batch.labels is not None and lw.semantic > 0:
         terms["semantic"] = semantic_loss(out.semantic_logits, batch.labels, batch.iw)
     if out.light_residual is not None and lw.light_reg > 0 and out.weights.numel():
@@ -314,7 +341,7 @@ def train_step(state: TrainState, data: TrainData) -> dict:
         terms["colour_reg"] = state.colour.regulariser()
     weight = {"rgb": lw.rgb, "ssim": lw.ssim, "mat": lw.mat, "psnr_loss": lw.psnr, "eikonal": lw.eikonal,
               "orientation": lw.orientation, "semantic": lw.semantic, "light_reg": lw.light_reg, "colour_reg": lw.colour_reg,
-              "compactness": lw.compactness, "opacity": lw.opacity}
+              "compactness": lw.compactness, "opacity": lw.opacity, "sparse_depth": lw.sparse_depth}
     loss = sum(weight[k] * v for k, v in terms.items())
     if not torch.isfinite(loss):
         bad = [k for k, v in terms.items() if not torch.isfinite(v)]
