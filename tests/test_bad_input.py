@@ -439,6 +439,8 @@ _ARGS = [
      ("--batch-rays", "16")),
     ("train-sparse-depth-negative", lambda c: ["train", c.w.scene, "--out", c.t / O, "--steps", 1, "--sparse-depth",
                                                "-0.1"], ("--sparse-depth",)),
+    ("train-opacity-loss-negative", lambda c: ["train", c.w.scene, "--out", c.t / O, "--steps", 1, "--opacity-loss",
+                                               "-1"], ("--opacity-loss",)),
     ("train-sparse-depth-nan", lambda c: ["train", c.w.scene, "--out", c.t / O, "--steps", 1, "--sparse-depth", "nan"],
      ("--sparse-depth", "nan")),
     ("train-seed-negative", lambda c: ["train", c.w.scene, "--out", c.t / O, "--steps", 1, "--seed", "-1"],

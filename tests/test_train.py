@@ -156,6 +156,20 @@ def test_cli_train_and_render(tiny, tmp_path, capsys):
     assert "training length" in capsys.readouterr().err
 
 
+def test_cli_loss_options_are_recorded_and_checked_on_resume(tiny, tmp_path, capsys):
+    """--sparse-depth and --opacity-loss reach the run's config; --resume with another value is refused."""
+    from toolkit.cli import main
+
+    run = tmp_path / "l"
+    assert main(["train", str(tiny), "--out", str(run), "--steps", "2", "--batch-rays", "256", "--quiet",
+                 "--no-auto-priors", "--sparse-depth", "0.25", "--opacity-loss", "0.05"]) == 0
+    losses = json.load(open(run / "config.json"))["config"]["losses"]
+    assert losses["sparse_depth"] == 0.25 and losses["opacity"] == 0.05
+    capsys.readouterr()
+    assert main(["train", "--out", str(run), "--steps", "3", "--resume", "--sparse-depth", "0.5", "--quiet"]) == 2
+    assert "--sparse-depth" in capsys.readouterr().err
+
+
 def test_cli_train_computes_its_priors_from_the_photos(tmp_path, capsys):
     """`dars train` on photos + poses with no priors computes labels, metal masks and light with the shipped networks
     into <out>/priors, trains with them (never the scene's ground truth) and records which models produced them;

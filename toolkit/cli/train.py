@@ -51,6 +51,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--sparse-depth", type=NONNEGATIVE, default=0.0, metavar="W",
                    help="weight of the sparse-depth loss: rays through triangulated feature points end at their "
                         "depth (photos and poses only; default 0 = off)")
+    q.add_argument("--opacity-loss", type=NONNEGATIVE, default=0.0, metavar="W",
+                   help="weight of the mean (1 - opacity) of each batch's rays: rays end on a surface, not in the "
+                        "learned background (rooms; never for objects on a transparent background; default 0 = off)")
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
     q.add_argument("--albedo-supervision", action="store_true",
                    help="use the scene's ground-truth albedo maps in L_mat (eq. 20); makes albedo MAE circular")
@@ -121,6 +124,8 @@ _RESUME_OPTIONS = (
     ("--albedo-supervision", "albedo_supervision", lambda m: bool(m["config"].get("albedo_supervision")),
      lambda v: v or None),
     ("--batch-rays", "batch_rays", lambda m: m["config"].get("batch_rays"), lambda v: v or None),
+    ("--opacity-loss", "opacity_loss", lambda m: m["config"].get("losses", {}).get("opacity", 0.0) or None,
+     lambda v: v or None),
     ("--sparse-depth", "sparse_depth", lambda m: m["config"].get("losses", {}).get("sparse_depth", 0.0) or None,
      lambda v: v or None),
     ("--labels", "labels", lambda m: m["config"].get("labels", "predicted"), lambda v: None if v == "predicted" else v),
@@ -209,10 +214,11 @@ def cmd_train(args: argparse.Namespace) -> int:
     if snapshots:
         overrides["snapshot_minutes"] = snapshots
     cfg = make_config(args.preset or "fast", **overrides)
-    if args.sparse_depth:
+    if args.sparse_depth or args.opacity_loss:
         from dataclasses import replace
 
-        cfg = replace(cfg, losses=replace(cfg.losses, sparse_depth=float(args.sparse_depth)))
+        cfg = replace(cfg, losses=replace(cfg.losses, sparse_depth=float(args.sparse_depth) or cfg.losses.sparse_depth,
+                                          opacity=float(args.opacity_loss) or cfg.losses.opacity))
     priors = args.priors
     try:
         if not args.resume and priors is None and not args.no_auto_priors and cfg.shading != "radiance":
