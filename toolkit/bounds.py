@@ -199,10 +199,12 @@ def sparse_depth_targets(scene, points: SparsePoints) -> dict[str, torch.Tensor]
             rows.append(r[ok])
             cols.append(c[ok])
             depths.append(d[ok])
-    cat = (lambda xs, dt: torch.from_numpy(np.concatenate(xs).astype(dt)) if xs else torch.zeros(0, dtype=torch.int64))
-    out = {"views": cat(views, np.int64), "rows": cat(rows, np.int64), "cols": cat(cols, np.int64)}
-    out["depth"] = torch.from_numpy(np.concatenate(depths).astype(np.float32)) if depths else torch.zeros(0)
-    return out
+    if not views:
+        return {"views": torch.zeros(0, dtype=torch.int64), "rows": torch.zeros(0, dtype=torch.int64),
+                "cols": torch.zeros(0, dtype=torch.int64), "depth": torch.zeros(0)}
+    return {"views": torch.from_numpy(np.concatenate(views)), "rows": torch.from_numpy(np.concatenate(rows)),
+            "cols": torch.from_numpy(np.concatenate(cols)),
+            "depth": torch.from_numpy(np.concatenate(depths).astype(np.float32))}
 
 
 def box_from_cameras(c2w: np.ndarray, fx: np.ndarray, width: np.ndarray) -> np.ndarray:

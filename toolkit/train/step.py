@@ -214,11 +214,7 @@ def sample_batch(state: TrainState, data: TrainData) -> Batch:
         iw = torch.cat([iw, patch_iw.repeat_interleave(s * s)])
     flat = lay.flat_index(views, rows, cols)
     dev = state.device
-    cams = state.dars.cameras
-    scene = data.scene
-    bounds = state.field.space if state.cfg.field.contraction else scene.aabb.to(dev)
-    rays = generate_rays(cams, views.to(dev), pixels=torch.stack([cols, rows], -1).to(dev),
-                         aabb=bounds, near=scene.near, far=scene.far)
+    rays = _training_rays(state, data, views, rows, cols)
     target = data.images.gather(flat).to(dev)
     labels = data.labels.gather(flat).long().to(dev) if data.labels is not None else None
     metal = data.metal.gather(flat).to(dev) if data.metal is not None else None
@@ -232,21 +228,23 @@ SPARSE_DEPTH_RAYS = 256
 """Rays per step through pixels with a triangulated depth (``losses.sparse_depth``), on top of ``batch_rays``."""
 
 
+def _training_rays(state: TrainState, data: TrainData, views: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor):
+    """Rays of training pixels (views, rows, cols: int64 [R]) on the training device, bounded as the field is."""
+    dev, scene = state.device, data.scene
+    bounds = state.field.space if state.cfg.field.contraction else scene.aabb.to(dev)
+    return generate_rays(state.dars.cameras, views.to(dev), pixels=torch.stack([cols, rows], -1).to(dev),
+                         aabb=bounds, near=scene.near, far=scene.far)
+
+
 def _sparse_depth_term(state: TrainState, data: TrainData) -> torch.Tensor:
     """:func:`toolkit.losses.sparse_depth_loss` on ``SPARSE_DEPTH_RAYS`` rays drawn from ``data.sparse_depth``."""
-    sd, dev, scene = data.sparse_depth, state.device, data.scene
+    sd, dev = data.sparse_depth, state.device
     k = len(sd["depth"])
     pick = torch.randint(0, k, (min(k, SPARSE_DEPTH_RAYS),), generator=state.generator)
     views, rows, cols = sd["views"][pick], sd["rows"][pick], sd["cols"][pick]
-    bounds = state.field.space if state.cfg.field.contraction else scene.aabb.to(dev)
-    rays = generate_rays(state.dars.cameras, views.to(dev), pixels=torch.stack([cols, rows], -1).to(dev),
-                         aabb=bounds, near=scene.near, far=scene.far)
+    rays = _training_rays(state, data, views, rows, cols)
     wray = data.weights.gather(data.weights.flat_index(views, rows, cols)).to(dev)
-    cfg = state.cfg
-    inputs = RenderInputs(state.occupancy, state.l_env.detach(), state.background,
-                          dars=state.dars if cfg.sampler.dars else None)
-    out = render_rays(state.field, rays, RenderConfig(sampler=cfg.sampler, shading=cfg.shading, deferred=True),
-                      inputs, wray if cfg.sampler.dars else None, state.generator)
+    out = _render(state, rays, wray, state.l_env.detach(), deferred=True)  # only the weights are used
     ri = out.sample_ray_indices
     t = ((out.sample_points - rays.origins[ri]) * rays.directions[ri]).sum(-1)
     t_target = sd["depth"][pick].to(dev) / rays.z_scale.reshape(-1)  # camera-axis depth -> distance along the ray
@@ -262,12 +260,13 @@ def _to_target_space(state: TrainState, data: TrainData, rgb_linear: torch.Tenso
     return linear_to_srgb(rgb_linear) if data.scene.srgb else rgb_linear
 
 
-def _render(state: TrainState, batch: Batch, l_env: torch.Tensor):
+def _render(state: TrainState, rays, wray: torch.Tensor, l_env: torch.Tensor, deferred: bool | None = None):
+    """Render training rays (``wray``: W at each ray's pixel); ``deferred`` None = the run's setting."""
     cfg = state.cfg
-    rcfg = RenderConfig(sampler=cfg.sampler, shading=cfg.shading, deferred=cfg.deferred)
+    rcfg = RenderConfig(sampler=cfg.sampler, shading=cfg.shading,
+                        deferred=cfg.deferred if deferred is None else deferred)
     inputs = RenderInputs(state.occupancy, l_env, state.background, dars=state.dars if cfg.sampler.dars else None)
-    return render_rays(state.field, batch.rays, rcfg, inputs, batch.wray if cfg.sampler.dars else None,
-                       state.generator)
+    return render_rays(state.field, rays, rcfg, inputs, wray if cfg.sampler.dars else None, state.generator)
 
 
 def _density_gradient(fld: DarsField, points: torch.Tensor, eps: float) -> torch.Tensor:
@@ -293,7 +292,7 @@ def train_step(state: TrainState, data: TrainData) -> dict:
                     state.optimizer.state.pop(p, None)
         state.field.shell_weight.fill_(w)
     batch = sample_batch(state, data)
-    out = _render(state, batch, state.l_env.detach())
+    out = _render(state, batch.rays, batch.wray, state.l_env.detach())
     pred = _to_target_space(state, data, out.rgb, batch.views)
     terms: dict[str, torch.Tensor] = {}
     terms["rgb"] = rgb_l1(pred, batch.target, batch.iw)
@@ -386,7 +385,7 @@ def light_step(state: TrainState, data: TrainData) -> dict:
     for p in state.field.parameters():
         p.requires_grad_(False)
     try:
-        out = _render(state, batch, state.l_env)
+        out = _render(state, batch.rays, batch.wray, state.l_env)
         pred = _to_target_space(state, data, out.rgb, batch.views)
         loss = rgb_l1(pred, batch.target, batch.iw)
         if not torch.isfinite(loss):
