@@ -42,18 +42,16 @@ def _say(out: Path, line: str) -> None:
         f.write(line + "\n")
 
 
-def _train(cmd_prefix: list[str], scene: str, run: Path, steps: int, device: str, seed: int = 0,
-           extra: list[str] | None = None, timeout: float | None = None) -> float:
+def _train(cmd_prefix: list[str], scene: str, run: Path, steps: int, device: str, seed: int = 0) -> float:
     args = cmd_prefix + ["train", scene, "--out", str(run), "--steps", str(steps), "--seed", str(seed),
-                         "--device", device, "--quiet", "--force"] + (extra or [])
+                         "--device", device, "--quiet", "--force"]
     t = time.time()
-    subprocess.run(args, check=True, timeout=timeout, cwd=ROOT)
+    subprocess.run(args, check=True, cwd=ROOT)
     return time.time() - t
 
 
 def _sec_per_step(run: Path) -> tuple[float, tuple[int, int]]:
-    rows = [json.loads(l) for l in open(run / "log.jsonl") if '"kind": "train"' in l]
-    rows = [r for r in rows if r.get("kind") == "train" and "elapsed" in r]
+    rows = [r for r in map(json.loads, open(run / "log.jsonl")) if r.get("kind") == "train" and "elapsed" in r]
     if len(rows) < 2:
         raise RuntimeError(f"{run}/log.jsonl: fewer than two logged steps; train longer")
     a, b = rows[0], rows[-1]
