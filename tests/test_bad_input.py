@@ -441,6 +441,8 @@ _ARGS = [
                                                "-0.1"], ("--sparse-depth",)),
     ("train-opacity-loss-negative", lambda c: ["train", c.w.scene, "--out", c.t / O, "--steps", 1, "--opacity-loss",
                                                "-1"], ("--opacity-loss",)),
+    ("train-depth-normal-negative", lambda c: ["train", c.w.scene, "--out", c.t / O, "--steps", 1, "--depth-normal",
+                                               "-0.5"], ("--depth-normal",)),
     ("train-sparse-depth-nan", lambda c: ["train", c.w.scene, "--out", c.t / O, "--steps", 1, "--sparse-depth", "nan"],
      ("--sparse-depth", "nan")),
     ("train-seed-negative", lambda c: ["train", c.w.scene, "--out", c.t / O, "--steps", 1, "--seed", "-1"],

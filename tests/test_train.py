@@ -157,17 +157,20 @@ def test_cli_train_and_render(tiny, tmp_path, capsys):
 
 
 def test_cli_loss_options_are_recorded_and_checked_on_resume(tiny, tmp_path, capsys):
-    """--sparse-depth and --opacity-loss reach the run's config; --resume with another value is refused."""
+    """--sparse-depth, --opacity-loss and --depth-normal reach the run's config; --resume with another value is
+    refused."""
     from toolkit.cli import main
 
     run = tmp_path / "l"
     assert main(["train", str(tiny), "--out", str(run), "--steps", "2", "--batch-rays", "256", "--quiet",
-                 "--no-auto-priors", "--sparse-depth", "0.25", "--opacity-loss", "0.05"]) == 0
+                 "--no-auto-priors", "--sparse-depth", "0.25", "--opacity-loss", "0.05", "--depth-normal", "0"]) == 0
     losses = json.load(open(run / "config.json"))["config"]["losses"]
-    assert losses["sparse_depth"] == 0.25 and losses["opacity"] == 0.05
+    assert losses["sparse_depth"] == 0.25 and losses["opacity"] == 0.05 and losses["depth_normal"] == 0.0
     capsys.readouterr()
     assert main(["train", "--out", str(run), "--steps", "3", "--resume", "--sparse-depth", "0.5", "--quiet"]) == 2
     assert "--sparse-depth" in capsys.readouterr().err
+    assert main(["train", "--out", str(run), "--steps", "3", "--resume", "--depth-normal", "0.3", "--quiet"]) == 2
+    assert "--depth-normal 0.3 (the run's: 0.0)" in capsys.readouterr().err
 
 
 def test_cli_train_computes_its_priors_from_the_photos(tmp_path, capsys):
@@ -253,6 +256,33 @@ def test_sparse_depth_loss_wants_the_weight_at_the_known_depth():
     assert float(sparse_depth_loss(torch.zeros(0), torch.zeros(0), torch.zeros(0, dtype=torch.long), target[:0], 0)) == 0
 
 
+def test_depth_normal_loss_follows_the_rendered_depth_not_the_head():
+    """A tilted plane seen by a camera: a head normal equal to the plane's normal costs 0, the opposite one 2; the
+    gradient reaches the normals and never the points (the geometry is the target)."""
+    from toolkit.losses import depth_normal_loss
+
+    s = 5
+    v, u = torch.meshgrid(torch.arange(s, dtype=torch.float32), torch.arange(s, dtype=torch.float32), indexing="ij")
+    n_true = torch.nn.functional.normalize(torch.tensor([0.3, -0.2, 1.0]), dim=0)
+    # points on the plane n·p = 2, spread over (u, v); the camera at the origin looks along +z
+    x, y = 0.1 * u, -0.1 * v
+    z = (2.0 - n_true[0] * x - n_true[1] * y) / n_true[2]
+    pts = torch.stack([x, y, z], -1)[None].requires_grad_(True)
+    dirs = torch.nn.functional.normalize(pts.detach(), dim=-1)
+    w = torch.ones(1, s, s)
+    facing = (-n_true).expand(1, s, s, 3)  # toward the camera
+    assert float(depth_normal_loss(pts, facing, dirs, w)) == pytest.approx(0.0, abs=1e-5)
+    assert float(depth_normal_loss(pts, -facing, dirs, w)) == pytest.approx(2.0, abs=1e-5)
+    side = torch.nn.functional.normalize(torch.cross(n_true, torch.tensor([1.0, 0.0, 0.0]), dim=0), dim=0)
+    n = side.expand(1, s, s, 3).clone().requires_grad_(True)
+    loss = depth_normal_loss(pts, n, dirs, w)
+    assert float(loss.detach()) == pytest.approx(1.0, abs=1e-5)  # perpendicular: 1 - cos 90°
+    loss.backward()
+    assert pts.grad is None or float(pts.grad.abs().max()) == 0.0
+    assert float(n.grad[0, 1:-1, 1:-1].abs().sum()) > 0 and float(n.grad[0, 0].abs().sum()) == 0  # interior only
+    assert float(depth_normal_loss(pts, facing, dirs, torch.zeros(1, s, s))) == 0.0
+
+
 def test_sparse_depth_option_trains_and_is_recorded(sample_scene_path, tmp_path):
     """`losses.sparse_depth` > 0: targets triangulated from the photos, the term is logged, the weight recorded."""
     import dataclasses
@@ -292,6 +322,30 @@ def test_scene_type_auto_unbounded_for_the_gallery_object_for_lego(sample_scene_
     assert room.scene_type == "unbounded" and room.field.contraction and room.field.shell == 0.0
     with pytest.raises(ConfigError, match="scene_type"):
         make_config("fast", steps=1, scene_type="hall")
+
+
+def test_room_geometry_losses_follow_the_scene_type(sample_scene_path):
+    """Weights left None become ROOM_LOSSES for a room and 0 for an object; a weight the user set is kept; the
+    NeRF baseline has none of them."""
+    import dataclasses
+
+    from toolkit.train import resolve_config
+    from toolkit.train.config import ROOM_LOSSES
+
+    scene = load_scene(sample_scene_path, "train")
+    keys = tuple(ROOM_LOSSES)
+    assert set(keys) == {"sparse_depth", "opacity", "depth_normal"} and all(v > 0 for v in ROOM_LOSSES.values())
+    room, _ = resolve_config(make_config("fast", steps=1), scene)
+    assert {k: getattr(room.losses, k) for k in keys} == ROOM_LOSSES
+    obj, _ = resolve_config(make_config("fast", steps=1, scene_type="object"), scene)
+    assert all(getattr(obj.losses, k) == 0.0 for k in keys)
+    cfg = make_config("fast", steps=1)
+    cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, depth_normal=0.0, opacity=0.3))
+    mixed, _ = resolve_config(cfg, scene)
+    assert (mixed.losses.depth_normal, mixed.losses.opacity, mixed.losses.sparse_depth) == (0.0, 0.3,
+                                                                                             ROOM_LOSSES["sparse_depth"])
+    nerf, _ = resolve_config(make_config("fast", steps=1, baseline="nerf", scene_type="room"), scene)
+    assert all(getattr(nerf.losses, k) == 0.0 for k in keys)
 
 
 def test_room_layer_density_on_enabled_faces_only():

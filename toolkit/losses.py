@@ -24,7 +24,10 @@ Readings of the paper, documented:
   per-point light residual (``light_reg``), the colour-correction regulariser (``colour_reg``) and mip-NeRF 360's
   interval loss (``compactness``, :func:`compactness_loss` — their "distortion" loss, renamed here so it cannot be
   confused with the paper's L_distortion on W): it pulls each ray's weights into one compact interval, removing
-  the semi-transparent fog and floaters an unbounded scene otherwise grows in front of textureless walls.
+  the semi-transparent fog and floaters an unbounded scene otherwise grows in front of textureless walls. For a
+  room (:data:`toolkit.train.config.ROOM_LOSSES`): the sparse-depth loss (:func:`sparse_depth_loss`), the opacity
+  loss and the depth-normal loss (:func:`depth_normal_loss`): the rendered normal follows the normal of the rendered
+  depth map, so the normal head cannot settle on a direction that merely dims the shading.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ import torch.nn.functional as F
 from .scene import UNLABELLED
 
 __all__ = ["LossWeights", "rgb_l1", "psnr_loss", "ssim_loss", "material_loss", "semantic_loss",
-           "normal_consistency_loss", "orientation_loss", "sparse_depth_loss", "light_residual_loss", "compactness_loss",
+           "normal_consistency_loss", "depth_normal_loss", "orientation_loss", "sparse_depth_loss", "light_residual_loss", "compactness_loss",
            "PAINTING", "METAL_TARGET", "PAINTING_ROUGHNESS"]
 
 PAINTING = 0
@@ -64,14 +67,17 @@ class LossWeights:
     colour_reg: float = 0.01
     compactness: float = 0.0
     """Ours (mip-NeRF 360's interval loss on contracted-space positions, :func:`compactness_loss`)."""
-    opacity: float = 0.0
+    opacity: float | None = None
     """Ours: mean (1 − opacity) of the batch's rays — a room is closed, so a ray should end on a surface unless the
     photo shows something no surface can (sky, a lamp): a textureless wall then becomes a surface instead of
-    learned environment."""
-    sparse_depth: float = 0.0
+    learned environment. None = by scene type (``toolkit.train.config.ROOM_LOSSES`` for rooms, 0 for objects)."""
+    depth_normal: float | None = None
+    """Ours: the normal head must agree with the normal of the rendered depth map (:func:`depth_normal_loss`, on
+    the SSIM patches). 0 = off; None = by scene type, as ``opacity``."""
+    sparse_depth: float | None = None
     """Ours (DS-NeRF's idea, our form): rays through the pixels of triangulated sparse points (the photos' own
     features and the poses; :func:`toolkit.bounds.sparse_depth_targets`) must end at the point's depth,
-    :func:`sparse_depth_loss`. 0 = off."""
+    :func:`sparse_depth_loss`. 0 = off; None = by scene type, as ``opacity``."""
 
 
 def _wmean(x: torch.Tensor, iw: torch.Tensor | None) -> torch.Tensor:
@@ -163,6 +169,34 @@ def normal_consistency_loss(pred_normals: torch.Tensor, density_gradient: torch.
     g = -F.normalize(density_gradient, dim=-1, eps=1e-6)
     w = weights.detach()
     return ((pred_normals - g).square().sum(-1) * w).sum() / w.sum().clamp_min(1e-12)
+
+
+def depth_normal_loss(points: torch.Tensor, normals: torch.Tensor, view_dirs: torch.Tensor,
+                      weights: torch.Tensor) -> torch.Tensor:
+    """Σ w (1 − n̂ · n_depth) / Σ w over the interior pixels of image patches: the rendered normal n̂ against the
+    normal of the surface the rendered depth describes.
+
+    n_depth = normalize(∂P/∂u × ∂P/∂v) from central differences of the patch's rendered surface points P (the ray
+    origin plus the expected distance along the ray), turned toward the camera. It is a constant here: the normal
+    head follows the geometry, the geometry does not bend toward the head. Unlike −∇σ at single sample points (a
+    fog's density gradient points away from the cameras), it sees the surface the photo's pixels agree on.
+
+    Args:
+        points: float [P, s, s, 3] rendered surface points of P patches of s x s pixels (row-major, s ≥ 3).
+        normals: float [P, s, s, 3] rendered unit normals.
+        view_dirs: float [P, s, s, 3] ray directions (camera → scene).
+        weights: float [P, s, s] per-pixel weights (e.g. opacity x importance; treated as constants).
+    """
+    p = points.detach()
+    du = p[:, 1:-1, 2:] - p[:, 1:-1, :-2]
+    dv = p[:, 2:, 1:-1] - p[:, :-2, 1:-1]
+    nd = F.normalize(torch.cross(du, dv, dim=-1), dim=-1, eps=1e-9)
+    d = view_dirs[:, 1:-1, 1:-1]
+    nd = torch.where((nd * d).sum(-1, keepdim=True) > 0, -nd, nd)
+    ok = (nd.square().sum(-1) > 0.5).to(points.dtype)
+    w = weights[:, 1:-1, 1:-1].detach() * ok
+    cos = (normals[:, 1:-1, 1:-1] * nd).sum(-1)
+    return ((1.0 - cos) * w).sum() / w.sum().clamp_min(1e-12)
 
 
 def orientation_loss(normals: torch.Tensor, view_dirs: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:

@@ -48,12 +48,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="how the light prior starts l_env: all 9 SH coefficients (full) or only band 0, its level and "
                         "colour (ambient; the directions are then left to the eq. 22 light stage)")
     q.add_argument("--no-mat-loss", action="store_true", help="ablation: no L_mat")
-    q.add_argument("--sparse-depth", type=NONNEGATIVE, default=0.0, metavar="W",
-                   help="weight of the sparse-depth loss: rays through triangulated feature points end at their "
-                        "depth (photos and poses only; default 0 = off)")
-    q.add_argument("--opacity-loss", type=NONNEGATIVE, default=0.0, metavar="W",
+    q.add_argument("--sparse-depth", type=NONNEGATIVE, default=None, metavar="W",
+                   help="weight of the sparse-depth loss: rays through feature points triangulated from the photos "
+                        "and poses end at their depth (default: 0.1 for a room, 0 for an object; 0 = off)")
+    q.add_argument("--opacity-loss", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the mean (1 - opacity) of each batch's rays: rays end on a surface, not in the "
-                        "learned background (rooms; never for objects on a transparent background; default 0 = off)")
+                        "learned background (default: 0.1 for a room, 0 for an object; never for objects on a "
+                        "transparent background)")
+    q.add_argument("--depth-normal", type=NONNEGATIVE, default=None, metavar="W",
+                   help="weight of the depth-normal loss: the rendered normal follows the normal of the rendered "
+                        "depth map (default: 0.2 for a room, 0 for an object; 0 = off)")
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
     q.add_argument("--albedo-supervision", action="store_true",
                    help="use the scene's ground-truth albedo maps in L_mat (eq. 20); makes albedo MAE circular")
@@ -124,10 +128,10 @@ _RESUME_OPTIONS = (
     ("--albedo-supervision", "albedo_supervision", lambda m: bool(m["config"].get("albedo_supervision")),
      lambda v: v or None),
     ("--batch-rays", "batch_rays", lambda m: m["config"].get("batch_rays"), lambda v: v or None),
-    ("--opacity-loss", "opacity_loss", lambda m: m["config"].get("losses", {}).get("opacity", 0.0) or None,
-     lambda v: v or None),
-    ("--sparse-depth", "sparse_depth", lambda m: m["config"].get("losses", {}).get("sparse_depth", 0.0) or None,
-     lambda v: v or None),
+    *((f"--{flag}", attr, (lambda m, k=key: m["config"].get("losses", {}).get(k) or 0.0),
+       lambda v: None if v is None else float(v))
+      for flag, attr, key in (("opacity-loss", "opacity_loss", "opacity"), ("sparse-depth", "sparse_depth", "sparse_depth"),
+                              ("depth-normal", "depth_normal", "depth_normal"))),
     ("--labels", "labels", lambda m: m["config"].get("labels", "predicted"), lambda v: None if v == "predicted" else v),
 )
 """Options that define a run: with ``--resume`` they must match the saved run (only its length may grow)."""
@@ -214,11 +218,12 @@ def cmd_train(args: argparse.Namespace) -> int:
     if snapshots:
         overrides["snapshot_minutes"] = snapshots
     cfg = make_config(args.preset or "fast", **overrides)
-    if args.sparse_depth or args.opacity_loss:
+    asked = {k: float(v) for k, v in (("sparse_depth", args.sparse_depth), ("opacity", args.opacity_loss),
+                                      ("depth_normal", args.depth_normal)) if v is not None}
+    if asked:
         from dataclasses import replace
 
-        cfg = replace(cfg, losses=replace(cfg.losses, sparse_depth=float(args.sparse_depth) or cfg.losses.sparse_depth,
-                                          opacity=float(args.opacity_loss) or cfg.losses.opacity))
+        cfg = replace(cfg, losses=replace(cfg.losses, **asked))
     priors = args.priors
     try:
         if not args.resume and priors is None and not args.no_auto_priors and cfg.shading != "radiance":

@@ -20,7 +20,7 @@ from ..losses import LossWeights
 from ..sampling import SamplerConfig
 from ..scene import Scene
 
-__all__ = ["TrainConfig", "PRESETS", "make_config", "resolve_config", "resolve_scene_box", "SHELL_FADE",
+__all__ = ["TrainConfig", "PRESETS", "make_config", "resolve_config", "resolve_scene_box", "SHELL_FADE", "ROOM_LOSSES",
            "photos_have_transparency"]
 
 
@@ -220,6 +220,7 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
         dars, mat_loss = False, False
         overrides.setdefault("fixed_light", True)
         overrides.setdefault("scene_type", "object")  # no room prior either: a plain transparent start
+        cfg = replace(cfg, losses=replace(cfg.losses, **{k: 0.0 for k in ROOM_LOSSES}))  # none of our additions
     if dars is not None:
         cfg = replace(cfg, sampler=replace(cfg.sampler, dars=bool(dars)),
                       render_sampler=replace(cfg.render_sampler, dars=bool(dars)))
@@ -230,6 +231,11 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
         overrides["ssim_patches"] = min(cfg.ssim_patches, int(overrides["batch_rays"]) // (2 * s * s))
     return replace(cfg, **overrides)
 
+
+ROOM_LOSSES = {"sparse_depth": 0.1, "opacity": 0.1, "depth_normal": 0.2}
+"""Loss weights that :func:`resolve_config` gives a room (``unbounded``) where the config leaves them None: the
+geometry terms measured on the validation galleries (README, "Geometry of a room"). An object on a transparent
+background gets 0 for each (the opacity loss would fill its background; the others are not measured there)."""
 
 SHELL_FADE = 0.1
 """Fraction of the run over which the (legacy, bounded-only) room prior's layer fades in, after stage (a)."""
@@ -278,6 +284,7 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
     """Fill data-dependent settings; returns the config and the scene with its resolved box.
 
     * ``scene_type`` (``auto`` → ``unbounded`` or ``object``) and with it the field's contraction;
+    * the loss weights left None (:data:`ROOM_LOSSES` for a room, 0 for an object);
     * the scene box (:func:`resolve_scene_box`);
     * with ``auto_resolution`` the hash grid's finest level resolves a quarter of the pixel footprint at the median
       camera distance — ``next_pow2(4 · box extent / footprint)`` (twice that with contraction: the box spans half
@@ -290,6 +297,11 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
         kind = "unbounded"
     if cfg.scene_type != kind or cfg.field.contraction != (kind == "unbounded"):
         cfg = replace(cfg, scene_type=kind, field=replace(cfg.field, contraction=kind == "unbounded", shell=0.0))
+    auto = {k: (v if kind == "unbounded" else 0.0) for k, v in ROOM_LOSSES.items() if getattr(cfg.losses, k) is None}
+    if auto:
+        cfg = replace(cfg, losses=replace(cfg.losses, **auto))
+        if log is not None and kind == "unbounded":
+            log("[dars] room geometry losses: " + ", ".join(f"{k} {v:g}" for k, v in auto.items()))
     scene, cfg = resolve_scene_box(cfg, scene, log)
     if not cfg.auto_resolution or cfg.field.encoding != "grid":
         return cfg, scene

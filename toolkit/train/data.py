@@ -188,7 +188,7 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         priors["colour"] = "identity (learned)"
     log("[dars] priors: " + ", ".join(f"{k}={v}" for k, v in priors.items()))
     sparse = None
-    if cfg.losses.sparse_depth > 0 and with_images:
+    if (cfg.losses.sparse_depth or 0.0) > 0 and with_images:
         from ..bounds import sparse_depth_targets, triangulate_sparse_points
 
         sparse = sparse_depth_targets(scene, triangulate_sparse_points(scene, log=log))

@@ -14,7 +14,8 @@ from torch import nn
 from .._checks import DarsError
 from ..field import DarsField
 from ..io import linear_to_srgb, srgb_to_linear
-from ..losses import (compactness_loss, light_residual_loss, material_loss, normal_consistency_loss, orientation_loss, psnr_loss, rgb_l1,
+from ..losses import (compactness_loss, depth_normal_loss, light_residual_loss, material_loss, normal_consistency_loss,
+                      orientation_loss, psnr_loss, rgb_l1,
                       semantic_loss, sparse_depth_loss, ssim_loss)
 from ..pipeline import Background, DarsContext, RenderConfig, RenderInputs, render_rays
 from ..pixels import PackedViews
@@ -251,6 +252,17 @@ def _sparse_depth_term(state: TrainState, data: TrainData) -> torch.Tensor:
     return sparse_depth_loss(out.weights, t, ri, t_target, len(pick))
 
 
+def _depth_normal_term(out, batch: Batch, s: int) -> torch.Tensor:
+    """:func:`toolkit.losses.depth_normal_loss` on the batch's s x s SSIM patches (the last rays of the batch)."""
+    n0, P = batch.n_random, batch.patch_iw.shape[0]
+    rays = batch.rays
+    o, d = rays.origins[n0:], rays.directions[n0:]
+    t = out.depth[n0:] / rays.z_scale.reshape(-1)[n0:]  # camera-axis depth -> distance along the ray
+    pts = (o + d * t[:, None]).reshape(P, s, s, 3)
+    w = (out.opacity[n0:] * batch.iw[n0:]).reshape(P, s, s)
+    return depth_normal_loss(pts, out.normal[n0:].reshape(P, s, s, 3), d.reshape(P, s, s, 3), w)
+
+
 def _to_target_space(state: TrainState, data: TrainData, rgb_linear: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
     if state.colour is not None:
         rgb_linear = state.colour(rgb_linear, views)
@@ -301,6 +313,8 @@ def train_step(state: TrainState, data: TrainData) -> dict:
         pp = pred[batch.n_random:].reshape(P, s, s, 3).permute(0, 3, 1, 2)
         tp = batch.target[batch.n_random:].reshape(P, s, s, 3).permute(0, 3, 1, 2)
         terms["ssim"] = ssim_loss(pp, tp, batch.patch_iw)
+        if (lw.depth_normal or 0.0) > 0:
+            terms["depth_normal"] = _depth_normal_term(out, batch, s)
     if cfg.shading == "pbr" and lw.mat > 0:
         terms["mat"] = material_loss(out.albedo, out.roughness, out.metallic,
                                      batch.labels if cfg.mat_labels else None, batch.metal,
@@ -324,14 +338,14 @@ def train_step(state: TrainState, data: TrainData) -> dict:
                                                     out.weights)
         else:
             terms["orientation"] = orientation_loss(out.normal, batch.rays.directions, out.opacity)
-    if lw.sparse_depth > 0 and data.sparse_depth is not None:
+    if (lw.sparse_depth or 0.0) > 0 and data.sparse_depth is not None:
         terms["sparse_depth"] = _sparse_depth_term(state, data)
     if cfg.semantics and batch.labels is not None and lw.semantic > 0:
         terms["semantic"] = semantic_loss(out.semantic_logits, batch.labels, batch.iw)
     if out.light_residual is not None and lw.light_reg > 0 and out.weights.numel():
         lw_w = out.opacity if out.deferred else out.weights
         terms["light_reg"] = light_residual_loss(out.light_residual, state.l_env, lw_w)
-    if lw.opacity > 0:
+    if (lw.opacity or 0.0) > 0:
         terms["opacity"] = ((1.0 - out.opacity) * batch.iw).sum() / batch.iw.sum().clamp_min(1e-12)
     if lw.compactness > 0 and out.sample_s is not None:
         terms["compactness"] = compactness_loss(out.weights, out.sample_s[0], out.sample_s[1],
@@ -340,7 +354,8 @@ def train_step(state: TrainState, data: TrainData) -> dict:
         terms["colour_reg"] = state.colour.regulariser()
     weight = {"rgb": lw.rgb, "ssim": lw.ssim, "mat": lw.mat, "psnr_loss": lw.psnr, "eikonal": lw.eikonal,
               "orientation": lw.orientation, "semantic": lw.semantic, "light_reg": lw.light_reg, "colour_reg": lw.colour_reg,
-              "compactness": lw.compactness, "opacity": lw.opacity, "sparse_depth": lw.sparse_depth}
+              "compactness": lw.compactness, "opacity": lw.opacity, "sparse_depth": lw.sparse_depth,
+              "depth_normal": lw.depth_normal}
     loss = sum(weight[k] * v for k, v in terms.items())
     if not torch.isfinite(loss):
         bad = [k for k, v in terms.items() if not torch.isfinite(v)]
