@@ -57,7 +57,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "transparent background)")
     q.add_argument("--depth-normal", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the depth-normal loss: the rendered normal follows the normal of the rendered "
-                        "depth map (default: 0.2 for a room, 0 for an object; 0 = off)")
+                        "depth map (default: 0.5 for a room, 0 for an object; 0 = off)")
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
     q.add_argument("--albedo-supervision", action="store_true",
                    help="use the scene's ground-truth albedo maps in L_mat (eq. 20); makes albedo MAE circular")

@@ -232,7 +232,7 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
     return replace(cfg, **overrides)
 
 
-ROOM_LOSSES = {"sparse_depth": 0.1, "opacity": 0.1, "depth_normal": 0.2}
+ROOM_LOSSES = {"sparse_depth": 0.1, "opacity": 0.1, "depth_normal": 0.5}
 """Loss weights that :func:`resolve_config` gives a room (``unbounded``) where the config leaves them None: the
 geometry terms measured on the validation galleries (README, "Geometry of a room"). An object on a transparent
 background gets 0 for each (the opacity loss would fill its background; the others are not measured there)."""
