@@ -40,7 +40,8 @@ import torch.nn.functional as F
 from .scene import UNLABELLED
 
 __all__ = ["LossWeights", "rgb_l1", "psnr_loss", "ssim_loss", "material_loss", "semantic_loss",
-           "normal_consistency_loss", "depth_normal_loss", "orientation_loss", "sparse_depth_loss", "light_residual_loss", "compactness_loss",
+           "normal_consistency_loss", "depth_normal_loss", "orientation_loss", "sparse_depth_loss",
+           "light_residual_loss", "compactness_loss",
            "PAINTING", "METAL_TARGET", "PAINTING_ROUGHNESS"]
 
 PAINTING = 0

@@ -130,7 +130,8 @@ _RESUME_OPTIONS = (
     ("--batch-rays", "batch_rays", lambda m: m["config"].get("batch_rays"), lambda v: v or None),
     *((f"--{flag}", attr, (lambda m, k=key: m["config"].get("losses", {}).get(k) or 0.0),
        lambda v: None if v is None else float(v))
-      for flag, attr, key in (("opacity-loss", "opacity_loss", "opacity"), ("sparse-depth", "sparse_depth", "sparse_depth"),
+      for flag, attr, key in (("opacity-loss", "opacity_loss", "opacity"),
+                              ("sparse-depth", "sparse_depth", "sparse_depth"),
                               ("depth-normal", "depth_normal", "depth_normal"))),
     ("--labels", "labels", lambda m: m["config"].get("labels", "predicted"), lambda v: None if v == "predicted" else v),
 )

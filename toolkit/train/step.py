@@ -15,8 +15,7 @@ from .._checks import DarsError
 from ..field import DarsField
 from ..io import linear_to_srgb, srgb_to_linear
 from ..losses import (compactness_loss, depth_normal_loss, light_residual_loss, material_loss, normal_consistency_loss,
-                      orientation_loss, psnr_loss, rgb_l1,
-                      semantic_loss, sparse_depth_loss, ssim_loss)
+                      orientation_loss, psnr_loss, rgb_l1, semantic_loss, sparse_depth_loss, ssim_loss)
 from ..pipeline import Background, DarsContext, RenderConfig, RenderInputs, render_rays
 from ..pixels import PackedViews
 from ..sampling import OccupancyGrid, build_ray_sampler, neighbour_views, select_rays
