@@ -299,6 +299,31 @@ def test_sparse_depth_option_trains_and_is_recorded(sample_scene_path, tmp_path)
     assert saved["sparse_depth"] == 0.1
 
 
+def test_depth_normal_runs_without_ssim_and_needs_patches(sample_scene_path, tmp_path):
+    """The depth-normal term draws its own image patches when L_ssim is off (no silent no-op); with no patches at
+    all, a weight the user set is refused and the room default is turned off, saying so."""
+    import dataclasses
+
+    from toolkit._checks import ConfigError
+    from toolkit.train import resolve_config
+
+    cfg = _small(steps=4, pretrain_fraction=0.5, log_every=1)
+    cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, ssim=0.0, depth_normal=0.5))
+    train(sample_scene_path, tmp_path / "r", cfg, progress_bar=False, log=lambda m: None)
+    rows = [json.loads(l) for l in open(tmp_path / "r" / "log.jsonl")]
+    train_rows = [r for r in rows if r.get("kind") == "train"]
+    assert train_rows and all("depth_normal" in r and math.isfinite(r["depth_normal"]) for r in train_rows)
+    assert not any("ssim" in r for r in train_rows)
+    scene = load_scene(sample_scene_path, "train")
+    nopatch = dataclasses.replace(make_config("fast", steps=1), ssim_patches=0)
+    with pytest.raises(ConfigError, match="ssim_patches=0"):
+        resolve_config(dataclasses.replace(nopatch, losses=dataclasses.replace(nopatch.losses, depth_normal=0.5)),
+                       scene)
+    lines = []
+    room, _ = resolve_config(nopatch, scene, lines.append)
+    assert room.losses.depth_normal == 0.0 and any("depth_normal off" in m for m in lines), lines
+
+
 # ------------------------------------------------------------------------------------------------ room prior
 def test_scene_type_auto_unbounded_for_the_gallery_object_for_lego(sample_scene_path):
     """Photos with no transparent pixel (the sample's RGBA PNGs are opaque everywhere; the tiny Lego's RGB on white)

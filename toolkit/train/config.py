@@ -302,6 +302,13 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
         cfg = replace(cfg, losses=replace(cfg.losses, **auto))
         if log is not None and kind == "unbounded":
             log("[dars] room geometry losses: " + ", ".join(f"{k} {v:g}" for k, v in auto.items()))
+    if (cfg.losses.depth_normal or 0.0) > 0 and cfg.ssim_patches == 0:
+        if "depth_normal" not in auto:
+            raise ConfigError(f"depth_normal={cfg.losses.depth_normal:g} is computed on the step's image patches, "
+                              "but ssim_patches=0: set ssim_patches > 0 or depth_normal 0")
+        cfg = replace(cfg, losses=replace(cfg.losses, depth_normal=0.0))
+        if log is not None:
+            log("[dars] depth_normal off: it needs image patches and ssim_patches=0")
     scene, cfg = resolve_scene_box(cfg, scene, log)
     if not cfg.auto_resolution or cfg.field.encoding != "grid":
         return cfg, scene

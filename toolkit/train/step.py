@@ -197,7 +197,8 @@ def sample_batch(state: TrainState, data: TrainData) -> Batch:
     lay = data.weights  # the views' sizes
     s = cfg.ssim_patch_size
     fits = int(lay.heights.min()) > s and int(lay.widths.min()) > s
-    P = cfg.ssim_patches if (cfg.losses.ssim > 0 and fits) else 0
+    patches_used = cfg.losses.ssim > 0 or (cfg.losses.depth_normal or 0.0) > 0
+    P = cfg.ssim_patches if (patches_used and fits) else 0
     n_rand = cfg.batch_rays - P * s * s
     idx, iw = select_rays(state.ray_sampler, n_rand, gen)
     views, rows, cols = lay.locate(idx)
@@ -311,7 +312,8 @@ def train_step(state: TrainState, data: TrainData) -> dict:
         s, P = cfg.ssim_patch_size, batch.patch_iw.shape[0]
         pp = pred[batch.n_random:].reshape(P, s, s, 3).permute(0, 3, 1, 2)
         tp = batch.target[batch.n_random:].reshape(P, s, s, 3).permute(0, 3, 1, 2)
-        terms["ssim"] = ssim_loss(pp, tp, batch.patch_iw)
+        if lw.ssim > 0:
+            terms["ssim"] = ssim_loss(pp, tp, batch.patch_iw)
         if (lw.depth_normal or 0.0) > 0:
             terms["depth_normal"] = _depth_normal_term(out, batch, s)
     if cfg.shading == "pbr" and lw.mat > 0:
