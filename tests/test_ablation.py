@@ -43,6 +43,10 @@ def test_ablation_trains_all_six_variants_under_one_budget(ablation):
         assert (out / v["name"] / "eval" / "metrics.json").is_file()
         assert v["view_consistency_curve"]["keys"] == doc["variants"][0]["view_consistency_curve"]["keys"]
     full, nerf = doc["variants"][0], doc["variants"][-1]
+    # the priors come from the training photos (not the evaluated test split) and every variant trains with them
+    assert json.loads((out / "priors" / "priors.json").read_text())["split"] == "train"
+    assert full["training"]["priors"]["labels"].startswith("predicted"), full["training"]["priors"]
+    assert full["training"]["priors"]["metal"].startswith("predicted"), full["training"]["priors"]
     assert all(d is None or d == 0 for d in full["delta_vs_full"].values())
     assert nerf["delta_vs_full"]["psnr"] == pytest.approx(nerf["metrics"]["psnr"] - full["metrics"]["psnr"])
     assert "no material decomposition" in nerf["unavailable"]["albedo_mae"]

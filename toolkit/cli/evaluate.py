@@ -133,6 +133,18 @@ def flat_variants(values: list[list[str]]) -> list[str]:
     return list(dict.fromkeys(v for part in values for v in part))
 
 
+def _priors_of_split(root: Path, split: str) -> bool:
+    """``root/priors.json`` exists and was computed from ``split``'s photos (priors an earlier ``dars ablate``
+    computed from another split are computed again)."""
+    import json
+
+    try:
+        doc = json.loads((root / "priors.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return str(doc.get("split")) == split
+
+
 def cmd_ablate(args: argparse.Namespace) -> int:
     from ..ablation import ABLATION_FILES, VARIANTS
     from ..outputs import OutputDir
@@ -165,11 +177,12 @@ def cmd_ablate(args: argparse.Namespace) -> int:
             from ..priors import compute_priors, scene_has_priors
             from ..scene import load_scene
 
-            scene = load_scene(args.scene, args.split)
+            # the training photos (as dars train), never the evaluated split: --split names the views to score
+            scene = load_scene(args.scene, "train")
             if not scene_has_priors(scene):
                 out.begin()  # the folder and its manifest (listing priors/) before the priors are written
                 priors = str(out.path / "priors")
-                if not (Path(priors) / "priors.json").is_file():
+                if not _priors_of_split(Path(priors), "train"):
                     compute_priors(scene, priors, force=True)
         res = run_ablation(args.scene, out, preset=args.preset, minutes=args.minutes, steps=args.steps,
                            seed=None if args.seeds else (args.seed or 0), seeds=args.seeds,
