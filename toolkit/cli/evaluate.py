@@ -136,11 +136,11 @@ def flat_variants(values: list[list[str]]) -> list[str]:
 def _priors_of_split(root: Path, split: str) -> bool:
     """``root/priors.json`` exists and was computed from ``split``'s photos (priors an earlier ``dars ablate``
     computed from another split are computed again)."""
-    import json
+    from ..io import read_json
 
     try:
-        doc = json.loads((root / "priors.json").read_text())
-    except (OSError, ValueError):
+        doc = read_json(root / "priors.json", "priors record")
+    except DarsError:  # missing or unreadable: computed again
         return False
     return str(doc.get("split")) == split
 

@@ -113,6 +113,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.set_defaults(func=cmd_relight)
 
 
+_LOSS_OPTIONS = (("opacity-loss", "opacity_loss", "opacity"), ("sparse-depth", "sparse_depth", "sparse_depth"),
+                 ("depth-normal", "depth_normal", "depth_normal"))
+"""Loss-weight options of ``dars train``: (flag, argparse attribute, ``LossWeights`` field); None = by scene type."""
+
 _RESUME_OPTIONS = (
     # (option, args attribute, the saved value of a run (config.json as a dict), the value asked for)
     ("--preset", "preset", lambda m: m["config"].get("preset"), lambda v: v),
@@ -130,9 +134,7 @@ _RESUME_OPTIONS = (
     ("--batch-rays", "batch_rays", lambda m: m["config"].get("batch_rays"), lambda v: v or None),
     *((f"--{flag}", attr, (lambda m, k=key: m["config"].get("losses", {}).get(k) or 0.0),
        lambda v: None if v is None else float(v))
-      for flag, attr, key in (("opacity-loss", "opacity_loss", "opacity"),
-                              ("sparse-depth", "sparse_depth", "sparse_depth"),
-                              ("depth-normal", "depth_normal", "depth_normal"))),
+      for flag, attr, key in _LOSS_OPTIONS),
     ("--labels", "labels", lambda m: m["config"].get("labels", "predicted"), lambda v: None if v == "predicted" else v),
 )
 """Options that define a run: with ``--resume`` they must match the saved run (only its length may grow)."""
@@ -219,8 +221,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if snapshots:
         overrides["snapshot_minutes"] = snapshots
     cfg = make_config(args.preset or "fast", **overrides)
-    asked = {k: float(v) for k, v in (("sparse_depth", args.sparse_depth), ("opacity", args.opacity_loss),
-                                      ("depth_normal", args.depth_normal)) if v is not None}
+    asked = {key: float(getattr(args, attr)) for _, attr, key in _LOSS_OPTIONS if getattr(args, attr) is not None}
     if asked:
         from dataclasses import replace
 
