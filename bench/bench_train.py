@@ -180,8 +180,8 @@ h, w = o.rgb.shape[:2]
 print(json.dumps({'train_rays_s': cfg.batch_rays / dt, 'samples_per_ray': r['samples_per_ray'],
                   'render_rays_s': h * w / rt, 'peak_rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """ % (str(ROOT), threads, str(ROOT / "samples" / "gallery"))
-    configs = {"grid + uniform": {"encoding": "grid", "dars": False}, "grid + DARS": {"encoding": "grid"},
-               "mlp + uniform": {"encoding": "mlp", "dars": False}, "mlp + DARS": {"encoding": "mlp"}}
+    configs = {"grid + uniform": {"encoding": "grid", "dars": False}, "grid + DARS": {"encoding": "grid", "dars": True},
+               "mlp + uniform": {"encoding": "mlp", "dars": False}, "mlp + DARS": {"encoding": "mlp", "dars": True}}
     res = {}
     for name, kw in configs.items():
         p = subprocess.run([PY, "-c", code, json.dumps(kw)], capture_output=True, text=True, cwd=ROOT,

@@ -254,7 +254,7 @@ def test_old_no_semantics_configs_keep_both_switches_off():
     from toolkit.evaluate import variant_of
     from toolkit.train import TrainConfig, make_config
 
-    new = make_config("fast", semantics=False)
+    new = make_config("fast", dars=True, semantics=False)
     assert new.semantics is False and new.mat_labels is True and variant_of(new) == "no_semantics"
     old = new.to_dict()
     del old["mat_labels"]  # saved before the switches were separated: semantics=False also dropped L_mat's classes
@@ -263,7 +263,7 @@ def test_old_no_semantics_configs_keep_both_switches_off():
     full = make_config("fast").to_dict()
     del full["mat_labels"]
     assert TrainConfig.from_dict(full).mat_labels is True
-    assert variant_of(make_config("fast", mat_loss=False)) == "no_mat_loss"
+    assert variant_of(make_config("fast", dars=True, mat_loss=False)) == "no_mat_loss"
 
 
 def test_variants_option_takes_commas_hyphens_and_spaces():

@@ -31,6 +31,7 @@ import pytest
 
 from synthetic import make_scene
 from toolkit.cli import main
+from toolkit.defaults import DARS_DEFAULT
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -505,13 +506,14 @@ _ARGS = [
 CASES += [Case(f"arg-{name}", argv, words) for name, argv, words in _ARGS]
 
 # --- 5. resume: the run continues as it was started -------------------------------------------------------------
+_OTHER_SAMPLER = "--no-dars" if DARS_DEFAULT else "--dars"  # the copied run was trained with the default sampler
 _RESUME = lambda *extra: (lambda c: ["train", *extra, "--resume", "--out", c.t / "r", "--steps", 4])  # noqa: E731
 CASES += [
     Case("resume-other-scene", lambda c: ["train", c.t / "s2", "--resume", "--out", c.t / "r", "--steps", 4],
          ("s2", "scene", "another --out"), _both(_copy_run, lambda c: shutil.copytree(c.w.scene, c.t / "s2"))),
     Case("resume-other-preset", _RESUME("--preset", "paper"), ("--preset paper", "fast", "--force"), _copy_run),
     Case("resume-other-seed", _RESUME("--seed", "7"), ("--seed 7", "the run's: 0"), _copy_run),
-    Case("resume-ablation-switch", _RESUME("--no-dars"), ("--no-dars",), _copy_run),
+    Case("resume-ablation-switch", _RESUME(_OTHER_SAMPLER), (_OTHER_SAMPLER,), _copy_run),  # not the run's sampler
     Case("resume-other-priors", _RESUME("--priors", "."), ("--priors",), _copy_run),
     Case("resume-and-force", _RESUME("--force"), ("--resume", "--force"), _copy_run),
     Case("resume-no-checkpoint", lambda c: ["train", "--resume", "--out", c.t / "r", "--steps", 4],

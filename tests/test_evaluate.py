@@ -25,7 +25,8 @@ def scene_gt(tmp_path_factory):
 @pytest.fixture(scope="module")
 def run_dir(scene_gt, tmp_path_factory):
     out = tmp_path_factory.mktemp("evalrun") / "run"
-    train(scene_gt, out, small_config(steps=12), progress_bar=False, log=lambda m: None)
+    # DARS whatever the default sampler: the tests below read its per-ray sample counts and render path
+    train(scene_gt, out, small_config(steps=12, dars=True), progress_bar=False, log=lambda m: None)
     return out
 
 

@@ -73,6 +73,27 @@ def test_baseline_and_ablation_switches_train(tiny, tmp_path):
     assert cfg["shading"] == "radiance" and cfg["sampler"]["dars"] is False and cfg["losses"]["mat"] == 0.0
 
 
+def test_sampler_default_and_explicit_switch():
+    """``dars`` not given (or None) takes the measured default; True/False and ``--dars``/``--no-dars`` override it,
+    and the ablation's full model is DARS whatever the default."""
+    from toolkit.ablation import VARIANTS
+    from toolkit.cli import build_parser
+    from toolkit.defaults import DARS_DEFAULT
+
+    for kw, want in (({}, DARS_DEFAULT), ({"dars": None}, DARS_DEFAULT), ({"dars": True}, True),
+                     ({"dars": False}, False)):
+        cfg = make_config("fast", **kw)
+        assert cfg.sampler.dars is want and cfg.render_sampler.dars is want, kw
+    assert make_config("fast", dars=True, baseline="nerf").sampler.dars is False
+    assert VARIANTS["full"] == {"dars": True} and VARIANTS["no_dars"] == {"dars": False}
+    assert all(sw.get("dars") is True for name, sw in VARIANTS.items() if name not in ("no_dars", "nerf"))
+    p = build_parser()
+    a, b = (p.parse_args(["train", "s", "--out", "o", "--steps", "1", flag]) for flag in ("--dars", "--no-dars"))
+    assert (a.dars, a.no_dars, b.dars, b.no_dars) == (True, False, False, True)
+    with pytest.raises(SystemExit):
+        p.parse_args(["train", "s", "--out", "o", "--steps", "1", "--dars", "--no-dars"])
+
+
 def test_bad_configs_rejected():
     with pytest.raises(ConfigError, match="batch_rays=8"):
         make_config("fast", batch_rays=8)
@@ -458,7 +479,8 @@ def test_training_on_photos_of_different_sizes(tiny, tmp_path):
     assert len(info["train_views"]) == 7 and 0.0 <= info["miou_heldout"] <= 1.0  # the 32x24 ones of every 2nd
     assert len(priors_light(sc, None)["per_image"]) == len(sc)
     priors_weights(sc, None)
-    train(scene, tmp_path / "r", _small(steps=30, labels="ground-truth"), progress_bar=False, log=lambda m: None)
+    train(scene, tmp_path / "r", _small(steps=30, labels="ground-truth", dars=True), progress_bar=False,
+          log=lambda m: None)  # DARS: its W maps are read per view size
     run = load_run(tmp_path / "r")
     assert run.weight_maps[0].shape == (32, 24) and run.weight_maps[1].shape == (20, 32)
     assert run.weight_maps[2].shape == (32, 32)
@@ -474,7 +496,7 @@ def test_downscale_is_recorded_and_used_by_render_and_resume(tiny, tmp_path, cap
     from toolkit.cli import main
 
     run_dir = tmp_path / "d"
-    train(tiny, run_dir, _small(steps=4), progress_bar=False, log=lambda m: None, downscale=2)
+    train(tiny, run_dir, _small(steps=4, dars=True), progress_bar=False, log=lambda m: None, downscale=2)  # W maps too
     assert json.loads((run_dir / "config.json").read_text())["downscale"] == 2
     run = load_run(run_dir)
     assert run.downscale == 2 and run.train_scene.image_size == (16, 16) and run.weight_maps[0].shape == (16, 16)

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from .._checks import DarsError
+from ..defaults import DARS_DEFAULT
 from ._common import COUNT, FINITE, NONNEGATIVE, POSITIVE, number, set_threads
 
 
@@ -40,7 +41,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                     "has them; else they are computed from the photos into <out>/priors)")
     q.add_argument("--no-auto-priors", action="store_true",
                    help="do not compute missing priors (segmentation + metal mask, light): train without them")
-    q.add_argument("--no-dars", action="store_true", help="ablation: uniform rays + hierarchical sampling")
+    sampler = q.add_mutually_exclusive_group()
+    sampler.add_argument("--dars", action="store_true",
+                         help="the paper's distortion-aware sampler: W-weighted rays, per-ray fine budgets, W-guided "
+                              "samples along the ray" + (" (the default)" if DARS_DEFAULT else
+                                                         " (off by default: uniform sampling measured as good or "
+                                                         "better on the validation galleries, README)"))
+    sampler.add_argument("--no-dars", action="store_true", help="uniform rays + hierarchical sampling"
+                         + (" (the w/o DARS ablation)" if DARS_DEFAULT else " (the default)"))
     q.add_argument("--no-semantics", action="store_true",
                    help="ablation: no semantic input (no L_semantic, no label edges in W; L_mat keeps its class terms)")
     q.add_argument("--fixed-light", action="store_true", help="ablation: l_env fixed at its initial value")
@@ -124,6 +132,7 @@ _RESUME_OPTIONS = (
     ("--split", "split", lambda m: m.get("split", "train"), lambda v: v),
     ("--scene-type", "scene_type", lambda m: m["config"].get("scene_type"), lambda v: None if v == "auto" else v),
     ("--no-dars", "no_dars", lambda m: not m["config"].get("sampler", {}).get("dars", True), lambda v: v or None),
+    ("--dars", "dars", lambda m: m["config"].get("sampler", {}).get("dars", True), lambda v: v or None),
     ("--no-semantics", "no_semantics", lambda m: not m["config"].get("semantics", True), lambda v: v or None),
     ("--fixed-light", "fixed_light", lambda m: bool(m["config"].get("fixed_light")), lambda v: v or None),
     ("--light-init", "light_init", lambda m: m["config"].get("light_init", "full"), lambda v: None if v == "full" else v),
@@ -200,8 +209,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     overrides: dict = {"seed": seed, "device": args.device, "minutes": args.minutes, "steps": args.steps}
     if args.scene_type != "auto":
         overrides["scene_type"] = args.scene_type
-    if args.no_dars:
-        overrides["dars"] = False
+    if args.no_dars or args.dars:
+        overrides["dars"] = bool(args.dars)
     if args.no_semantics:
         overrides["semantics"] = False
     if args.fixed_light:

@@ -14,14 +14,15 @@ import numpy as np
 import torch
 
 from .._checks import ConfigError, check_choice
+from ..defaults import DARS_DEFAULT
 from ..encoding import HashGridConfig
 from ..field import FieldConfig
 from ..losses import LossWeights
 from ..sampling import SamplerConfig
 from ..scene import Scene
 
-__all__ = ["TrainConfig", "PRESETS", "make_config", "resolve_config", "resolve_scene_box", "SHELL_FADE", "ROOM_LOSSES",
-           "photos_have_transparency"]
+__all__ = ["TrainConfig", "PRESETS", "DARS_DEFAULT", "make_config", "resolve_config", "resolve_scene_box", "SHELL_FADE",
+           "ROOM_LOSSES", "photos_have_transparency"]
 
 
 @dataclass(frozen=True)
@@ -186,7 +187,8 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
     ``fast``: the same decomposition, heads, PBR shading and DARS on CPU: hash-grid field (finest resolution
     from the data), 32 coarse + 8 fine samples, 4096-ray batches, L_eikonal after step 500.
 
-    Ablation switches (Table 6): ``dars=False`` (w/o DARS: uniform pixel selection and fine samples),
+    Sampler: ``dars=True`` (DARS) or ``False`` (uniform pixel selection and hierarchical fine samples; the "w/o DARS"
+    row of Table 6); None or not given: :data:`toolkit.defaults.DARS_DEFAULT`. Other ablation switches (Table 6):
     ``semantics=False`` (w/o semantic input: no L_semantic, no label edges E in W; L_mat keeps its class terms),
     ``fixed_light=True``, ``mat_loss=False`` (w/o L_mat: the whole material loss, class terms included),
     ``baseline="nerf"`` (standard NeRF: stratified + hierarchical samples, radiance head, no priors, no room prior).
@@ -210,6 +212,7 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
             batch_rays=4096, ssim_patches=4, losses=LossWeights(eikonal_start=500),
         )
     dars = overrides.pop("dars", None)
+    dars = DARS_DEFAULT if dars is None else bool(dars)  # None: the measured default (toolkit.defaults)
     mat_loss = overrides.pop("mat_loss", None)
     baseline = overrides.pop("baseline", None)
     if baseline not in (None, "nerf"):
@@ -221,9 +224,7 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
         overrides.setdefault("fixed_light", True)
         overrides.setdefault("scene_type", "object")  # no room prior either: a plain transparent start
         cfg = replace(cfg, losses=replace(cfg.losses, **{k: 0.0 for k in ROOM_LOSSES}))  # none of our additions
-    if dars is not None:
-        cfg = replace(cfg, sampler=replace(cfg.sampler, dars=bool(dars)),
-                      render_sampler=replace(cfg.render_sampler, dars=bool(dars)))
+    cfg = replace(cfg, sampler=replace(cfg.sampler, dars=dars), render_sampler=replace(cfg.render_sampler, dars=dars))
     if mat_loss is False:
         cfg = replace(cfg, losses=replace(cfg.losses, mat=0.0))
     if "batch_rays" in overrides and "ssim_patches" not in overrides:  # patches take at most half a batch

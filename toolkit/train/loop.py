@@ -176,6 +176,8 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
             cfg, _ = resolve_config(cfg, scene, log)
         cfg = ddp.broadcast_object(cfg)
     cfg, scene = resolve_config(cfg, scene, log)
+    log("[dars] sampler: " + ("DARS (W-weighted rays, per-ray fine budgets, W-guided samples along the ray)"
+                              if cfg.sampler.dars else "uniform pixels + hierarchical fine samples (DARS: --dars)"))
     local = (lambda c: c) if ddp is None else ddp.local_config  # this rank's share of the global batch
     data = prepare_data(scene if ddp is None else ddp.shard(scene), local(cfg), log, priors_root)
     state = init_state(local(cfg), data)
