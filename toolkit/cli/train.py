@@ -42,12 +42,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--no-auto-priors", action="store_true",
                    help="do not compute missing priors (segmentation + metal mask, light): train without them")
     sampler = q.add_mutually_exclusive_group()
-    sampler.add_argument("--dars", action="store_true",
+    sampler.add_argument("--dars", dest="dars", action="store_const", const=True, default=None,
                          help="the paper's distortion-aware sampler: W-weighted rays, per-ray fine budgets, W-guided "
                               "samples along the ray" + (" (the default)" if DARS_DEFAULT else
                                                          " (off by default: uniform sampling measured as good or "
                                                          "better on the validation galleries, README)"))
-    sampler.add_argument("--no-dars", action="store_true", help="uniform rays + hierarchical sampling"
+    sampler.add_argument("--no-dars", dest="dars", action="store_const", const=False,
+                         help="uniform rays + hierarchical sampling"
                          + (" (the w/o DARS ablation)" if DARS_DEFAULT else " (the default)"))
     q.add_argument("--no-semantics", action="store_true",
                    help="ablation: no semantic input (no L_semantic, no label edges in W; L_mat keeps its class terms)")
@@ -131,8 +132,8 @@ _RESUME_OPTIONS = (
     ("--seed", "seed", lambda m: m["config"].get("seed"), lambda v: v),
     ("--split", "split", lambda m: m.get("split", "train"), lambda v: v),
     ("--scene-type", "scene_type", lambda m: m["config"].get("scene_type"), lambda v: None if v == "auto" else v),
-    ("--no-dars", "no_dars", lambda m: not m["config"].get("sampler", {}).get("dars", True), lambda v: v or None),
-    ("--dars", "dars", lambda m: m["config"].get("sampler", {}).get("dars", True), lambda v: v or None),
+    ("sampler", "dars", lambda m: "--dars" if m["config"].get("sampler", {}).get("dars", True) else "--no-dars",
+     lambda v: None if v is None else "--dars" if v else "--no-dars"),
     ("--no-semantics", "no_semantics", lambda m: not m["config"].get("semantics", True), lambda v: v or None),
     ("--fixed-light", "fixed_light", lambda m: bool(m["config"].get("fixed_light")), lambda v: v or None),
     ("--light-init", "light_init", lambda m: m["config"].get("light_init", "full"), lambda v: None if v == "full" else v),
@@ -209,8 +210,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     overrides: dict = {"seed": seed, "device": args.device, "minutes": args.minutes, "steps": args.steps}
     if args.scene_type != "auto":
         overrides["scene_type"] = args.scene_type
-    if args.no_dars or args.dars:
-        overrides["dars"] = bool(args.dars)
+    if args.dars is not None:  # --dars or --no-dars; neither: the default sampler
+        overrides["dars"] = args.dars
     if args.no_semantics:
         overrides["semantics"] = False
     if args.fixed_light:
