@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -64,10 +65,18 @@ def log_error(est: np.ndarray, truth: np.ndarray) -> float:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("galleries", nargs="+", help="rendered gallery folders (transforms_train.json with 'sh')")
+    ap.add_argument("galleries", nargs="*", help="rendered gallery folders (transforms_train.json with 'sh'); "
+                    "default: the cached validation galleries (python samples/galleries.py --profile validation)")
     ap.add_argument("--weights", default=None, help="light network weights (default: the shipped ones)")
     ap.add_argument("--json", default=str(ROOT / "bench" / "out" / "light_level.json"))
     args = ap.parse_args()
+    if not args.galleries:
+        cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "dars" / "galleries" / "validation"
+        args.galleries = sorted(str(p) for p in cache.glob("seed_*") if p.is_dir())
+        if not args.galleries:
+            print(f"[light-level] skipped: no gallery given and none rendered in {cache} "
+                  "(python samples/galleries.py --profile validation --seeds 1000000)")
+            return 0
     torch.set_num_threads(1)
     model = load_lightnet(args.weights)
     rows = [r for r in (gallery_levels(g, model) for g in args.galleries) if r is not None]
