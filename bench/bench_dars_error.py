@@ -38,6 +38,7 @@ sys.path.insert(0, str(REPO))
 
 STRATA = (("hard", 0.9, 1.01), ("mid", 0.5, 0.9), ("flat", -0.01, 0.5))
 """(name, low, high): pixels whose per-photo rank of W lies in [low, high)."""
+NAMES = tuple(name for name, _, _ in STRATA) + ("all",)
 
 
 def collect_runs(folders: list[Path]) -> list[dict]:
@@ -49,7 +50,7 @@ def collect_runs(folders: list[Path]) -> list[dict]:
             raise SystemExit(f"{folder}: no ablation.json — pass folders written by `dars ablate`")
         doc = json.loads(doc_path.read_text())
         for v in doc["variants"]:
-            for r in v.get("runs") or [{"seed": v["seeds"][0], "run": v["run"]}]:
+            for r in v["runs"]:
                 runs.append({"scene": str(Path(doc["scene"]).expanduser().resolve()), "variant": v["name"],
                              "seed": int(r["seed"]), "run": r["run"]})
     seen = set()
@@ -78,7 +79,7 @@ def selection_tv(run, rho: float) -> float | None:
     return 0.5 * float((p - 1.0 / p.numel()).abs().sum())
 
 
-def stratified_psnr(run, every: int, log) -> dict:
+def stratified_psnr(run, every: int) -> dict:
     """Pooled PSNR per W stratum over every ``every``-th test view of ``run``."""
     import torch
 
@@ -87,8 +88,7 @@ def stratified_psnr(run, every: int, log) -> dict:
 
     scene = run.load_split("test")
     extras = scene.extras_available()
-    acc = {name: [0.0, 0] for name, _, _ in STRATA}
-    acc["all"] = [0.0, 0]
+    acc = {name: [0.0, 0] for name in NAMES}
     views = list(range(0, len(scene), every))
     for i in views:
         with torch.no_grad():
@@ -112,11 +112,6 @@ def stratified_psnr(run, every: int, log) -> dict:
     return out
 
 
-def spread(values: list[float]) -> dict:
-    return {"n": len(values), "mean": statistics.fmean(values) if values else None,
-            "std": statistics.stdev(values) if len(values) > 1 else None, "values": values}
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("folders", nargs="*", type=Path, help="`dars ablate` output folders")
@@ -131,6 +126,7 @@ def main(argv: list[str] | None = None) -> int:
               "(e.g. dars ablate GALLERY --out OUT --steps 600 --seeds 0,1,2 --variants full,no_dars)")
         return 0
 
+    from toolkit.ablation import paired_differences
     from toolkit.cli._common import set_threads
     from toolkit.io import write_json
     from toolkit.train import load_run
@@ -140,20 +136,19 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     for k, r in enumerate(runs, 1):
         run = load_run(r["run"])
-        r.update(stratified_psnr(run, args.every, print))
+        r.update(stratified_psnr(run, args.every))
         r["selection_tv"] = selection_tv(run, run.cfg.sampler.rho) if run.cfg.sampler.dars else 0.0
         tv = "" if r["selection_tv"] is None else f"  (selection TV {r['selection_tv']:.3f})"
         print(f"[{k}/{len(runs)}] {Path(r['scene']).name} {r['variant']} seed {r['seed']}: "
-              + "  ".join(f"{n} {r[n]:.2f}" for n in ("hard", "mid", "flat", "all")) + tv, flush=True)
+              + "  ".join(f"{n} {r[n]:.2f}" for n in NAMES) + tv, flush=True)
 
-    names = ("hard", "mid", "flat", "all")
     print(f"\nPSNR (dB) by W stratum of the test photo, pooled over 1 in {args.every} test views; "
           f"W from {runs[0]['w_inputs']} (ground truth for scoring only)")
-    print(f"{'scene':<16} {'variant':<14} {'seed':>4} " + " ".join(f"{n:>7}" for n in names) + "  sel.TV")
+    print(f"{'scene':<16} {'variant':<14} {'seed':>4} " + " ".join(f"{n:>7}" for n in NAMES) + "  sel.TV")
     for r in runs:
         tv = "" if r["selection_tv"] is None else f"{r['selection_tv']:.3f}"
         print(f"{Path(r['scene']).name:<16} {r['variant']:<14} {r['seed']:>4} "
-              + " ".join(f"{r[n]:7.2f}" for n in names) + f"  {tv}")
+              + " ".join(f"{r[n]:7.2f}" for n in NAMES) + f"  {tv}")
 
     full = {(r["scene"], r["seed"]): r for r in runs if r["variant"] == "full"}
     paired: dict[str, dict] = {}
@@ -162,9 +157,9 @@ def main(argv: list[str] | None = None) -> int:
                  if r["variant"] == variant and (r["scene"], r["seed"]) in full]
         if not pairs:
             continue
-        paired[variant] = {n: spread([a[n] - b[n] for a, b in pairs]) for n in names}
+        paired[variant] = {n: paired_differences([a[n] for a, _ in pairs], [b[n] for _, b in pairs]) for n in NAMES}
         print(f"\n{variant} − full, same scene and seed ({len(pairs)} pairs): mean ± std (dB)")
-        for n in names:
+        for n in NAMES:
             s = paired[variant][n]
             sd = f" ± {s['std']:.2f}" if s["std"] is not None else ""
             print(f"  {n:<5} {s['mean']:+.2f}{sd}   per pair: " + ", ".join(f"{x:+.2f}" for x in s["values"]))

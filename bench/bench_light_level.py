@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -71,7 +70,10 @@ def main() -> int:
     ap.add_argument("--json", default=str(ROOT / "bench" / "out" / "light_level.json"))
     args = ap.parse_args()
     if not args.galleries:
-        cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "dars" / "galleries" / "validation"
+        sys.path.insert(0, str(ROOT / "samples"))
+        from galleries import cache_root  # where samples/galleries.py renders ($DARS_CACHE or ~/.cache/dars)
+
+        cache = cache_root() / "validation"
         args.galleries = sorted(str(p) for p in cache.glob("seed_*") if p.is_dir())
         if not args.galleries:
             print(f"[light-level] skipped: no gallery given and none rendered in {cache} "

@@ -50,7 +50,7 @@ def test_stratified_psnr_puts_edge_error_in_the_hard_stratum():
 
     scene = _Scene(extras_available=lambda: [], cameras=None, srgb=False, load_image=lambda i: img)
     run = SimpleNamespace(load_split=lambda split: scene, render=lambda cams, i, chunk: _Out(pred.permute(1, 2, 0)))
-    out = bench.stratified_psnr(run, every=1, log=print)
+    out = bench.stratified_psnr(run, every=1)
     assert out["views"] == 1 and out["w_inputs"] == "test photo (G)"
     assert out["flat"] == pytest.approx(40.0, abs=0.01)  # the flat half holds none of the edge error
     assert out["hard"] < out["all"] < out["flat"]
