@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from dataclasses import asdict
@@ -29,7 +28,10 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "dars" / "galleries"
+sys.path.insert(0, str(REPO / "samples"))
+from galleries import cache_root  # noqa: E402  (where samples/galleries.py renders: $DARS_CACHE or ~/.cache/dars)
+
+CACHE = cache_root()
 
 
 def _gallery_dirs(root: Path) -> list[Path]:
