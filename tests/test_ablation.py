@@ -37,6 +37,7 @@ def test_ablation_trains_all_six_variants_under_one_budget(ablation):
     assert doc["budget"] == {"steps": 20, "minutes": 0.0} and doc["seed"] == 0
     for v in doc["variants"]:
         assert v["training"]["steps"] == 20, v["name"]
+        assert v["training"]["field_steps"] == 20, v["name"]  # 20 steps end before eq. 22's first l_env step
         assert v["training"]["variant"] == v["name"]
         assert set(v["metrics"]) == set(METRIC_KEYS)
         assert {k for k, x in v["metrics"].items() if x is None} == set(v["unavailable"])
@@ -277,3 +278,20 @@ def test_variants_option_takes_commas_hyphens_and_spaces():
         assert flat_variants(a.variants) == ["full", "no_dars"], argv
     with pytest.raises(SystemExit):
         p.parse_args(["ablate", "scene", "--out", "o", "--steps", "1", "--variants", "full,no-light"])
+
+
+def test_field_steps_note_names_the_steps_the_lighting_stage_takes():
+    from toolkit.report import _field_steps_note
+
+    def variant(label, field):
+        return {"label": label, "runs": [{"training": {"steps": 600, "field_steps": f}} for f in field]}
+
+    doc = {"variants": [variant("Full DARS-NeRF", [560, 560]), variant("fixed lighting", [600, 600])]}
+    note = " ".join(_field_steps_note(doc))
+    assert "Full DARS-NeRF 560 of 600" in note and "fixed lighting 600 of 600" in note
+    doc["variants"][0]["runs"][0]["training"]["field_steps"] = 600  # equal everywhere but one seed: still shown
+    assert "Full DARS-NeRF 560–600 of 600" in " ".join(_field_steps_note(doc))
+    same = {"variants": [variant("fixed lighting", [600]), variant("Standard NeRF", [600])]}
+    assert _field_steps_note(same) == []
+    old = {"variants": [{"label": "Full DARS-NeRF", "training": {"steps": 600}}]}  # ablation.json before field_steps
+    assert _field_steps_note(old) == []

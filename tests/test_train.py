@@ -10,7 +10,8 @@ from toolkit.io import linear_to_srgb
 from toolkit.metrics import psnr
 from toolkit.pipeline import RenderConfig, RenderInputs, render_image
 from toolkit.scene import load_scene
-from toolkit.train import TrainingDiverged, load_run, make_config, train
+from toolkit.evaluate import training_info
+from toolkit.train import TrainingDiverged, field_steps, is_light_step, load_run, make_config, train
 
 
 @pytest.fixture(scope="module")
@@ -50,6 +51,14 @@ def test_resume_reproduces_uninterrupted_run(tiny, tmp_path):
         assert torch.equal(v, cb["field"][k]), f"parameter {k} differs after resume"
     assert torch.equal(ca["l_env"], cb["l_env"])
     assert torch.equal(ca["occupancy"]["density"], cb["occupancy"]["density"])
+    # eq. 22's l_env steps are taken from the field's: 6 of the 24 here (steps 6, 7, 12, 13, 18, 19)
+    assert [k for k in range(24) if is_light_step(cfg, k)] == [6, 7, 12, 13, 18, 19]
+    assert field_steps(cfg) == 18 and field_steps(make_config("fast", steps=600)) == 560
+    assert field_steps(make_config("fast", steps=600, fixed_light=True)) == 600
+    assert field_steps(make_config("fast", steps=600, baseline="nerf")) == 600
+    light_adam = next(iter(ca["light_optimizer"]["state"].values()))
+    assert int(light_adam["step"]) == 24 - field_steps(cfg)  # the trainer took exactly those light steps
+    assert training_info(load_run(tmp_path / "a"))["field_steps"] == 18
 
 
 def test_smoke_training_psnr_rises(tiny, tmp_path):

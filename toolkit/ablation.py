@@ -312,7 +312,7 @@ def _run_doc(v: VariantResult, full_metrics: dict | None) -> dict:
     delta = {k: None if (full_metrics is None or not _finite(metrics[k]) or not _finite(full_metrics.get(k)))
              else metrics[k] - full_metrics[k] for k in METRIC_KEYS}
     vc = doc["details"].get("view_consistency") or {}
-    training = {k: doc["training"][k] for k in ("steps", "minutes", "variant", "switches", "priors",
+    training = {k: doc["training"][k] for k in ("steps", "field_steps", "minutes", "variant", "switches", "priors",
                                                "albedo_supervision")}
     return {"seed": v.seed, "run": str(v.run_dir), "reused": v.reused, "wall_seconds": v.wall_seconds,
             "training": training, "inputs": _run_inputs(v.run_dir, training),

@@ -245,7 +245,10 @@ def variant_of(cfg) -> str:
 
 def training_info(run) -> dict:
     """Training facts of a loaded run: steps, minutes, preset, ablation switches, priors, albedo supervision and the
-    last logged training scalars."""
+    last logged training scalars. ``field_steps``: how many of the steps optimised the field (the others are eq. 22
+    l_env steps, :func:`toolkit.train.field_steps`)."""
+    from .train.step import field_steps
+
     cfg = run.cfg
     priors = dict(run.meta.get("priors", {}))
     last: dict = {}
@@ -261,6 +264,7 @@ def training_info(run) -> dict:
                     last = row
     return {
         "steps": int(run.step),
+        "field_steps": field_steps(cfg, int(run.step)),
         "minutes": float(run.elapsed) / 60.0,
         "preset": cfg.preset,
         "budget": {"steps": int(cfg.steps), "minutes": float(cfg.minutes)},

@@ -524,6 +524,29 @@ def _signed(x, fmt: str) -> str:
     return "n/a" if x is None else ("+" if x >= 0 else "−") + fmt.format(abs(x))
 
 
+def _field_steps_note(doc: dict) -> list[str]:
+    """A paragraph when the variants optimised the field for different numbers of steps at the same step budget: the
+    eq. 22 lighting stage takes its l_env steps from the field's, so "fixed lighting" and "standard NeRF" train the
+    field longer. Empty when every run's field steps equal its steps' (or the runs predate ``field_steps``)."""
+    per = {}
+    for v in doc["variants"]:
+        runs = v.get("runs") or [v]
+        fs = [r["training"].get("field_steps") for r in runs]
+        if any(f is None for f in fs):
+            return []
+        per[v["label"]] = (sorted(set(fs)), sorted({r["training"]["steps"] for r in runs}))
+    if all(f == st for f, st in per.values()):
+        return []
+
+    def span(x):
+        return str(x[0]) if len(x) == 1 else f"{x[0]}–{x[-1]}"
+
+    return ["**Field steps differ.** The lighting stage (eq. 22) spends some of a run's steps on l_env alone, so at "
+            "one step budget the variants with it optimise the field fewer times: "
+            + ", ".join(f"{lab} {span(f)} of {span(st)}" for lab, (f, st) in per.items())
+            + ". A PSNR difference between them includes these steps (`toolkit.train.field_steps`).", ""]
+
+
 def _ablation_markdown(doc: dict, written: dict, out: Path) -> str:
 
     b = doc["budget"]
@@ -567,6 +590,7 @@ def _ablation_markdown(doc: dict, written: dict, out: Path) -> str:
     else:
         L += ["In parentheses: difference to the full model (variant − full). n/a: the metric is unavailable for that "
               "variant (reasons below).", ""]
+    L += _field_steps_note(doc)
     reasons: dict[tuple[str, str], list[str]] = {}
     shown = {c for c, _, _, _ in ABLATION_COLUMNS} | set(STAT_KEYS)
     for v in doc["variants"]:

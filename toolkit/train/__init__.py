@@ -27,11 +27,12 @@ from .config import PRESETS, SHELL_FADE, TrainConfig, make_config, photos_have_t
 from .data import TrainData, grey_ambient_sh, prepare_data
 from .loop import load_checkpoint, save_checkpoint, train
 from .run import FieldCallables, Run, field_callables, load_field_callables, load_run, render_views
-from .step import (MAX_BAD_STEPS, TrainingDiverged, TrainState, calibrate_steps, init_state, light_step, lr_progress,
-                   progress, sample_batch, train_step)
+from .step import (MAX_BAD_STEPS, TrainingDiverged, TrainState, calibrate_steps, field_steps, init_state, is_light_step,
+                   light_step, lr_progress, progress, sample_batch, train_step)
 
 __all__ = ["TrainConfig", "make_config", "PRESETS", "TrainData", "TrainState", "prepare_data", "init_state",
            "train_step", "light_step", "train", "save_checkpoint", "load_checkpoint", "Run", "load_run",
            "render_views", "TrainingDiverged", "grey_ambient_sh", "resolve_config", "FieldCallables", "field_callables",
            "load_field_callables", "SHELL_FADE", "MAX_BAD_STEPS", "progress", "lr_progress", "calibrate_steps",
+           "is_light_step", "field_steps",
            "sample_batch", "resolve_scene_box", "photos_have_transparency"]

@@ -20,7 +20,7 @@ from ..scene import load_scene
 from .config import TrainConfig, resolve_config
 from .data import prepare_data
 from .folder import first_checkpoint_due, open_run_dir, read_checkpoint, read_run_config, run_scene_options
-from .step import (TrainingDiverged, TrainState, calibrate_steps, init_state, light_step, lr_progress, progress,
+from .step import (TrainingDiverged, TrainState, calibrate_steps, init_state, is_light_step, light_step, lr_progress,
                    train_step)
 
 __all__ = ["train", "save_checkpoint", "load_checkpoint"]
@@ -240,9 +240,7 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                                        warmup=state.step < cfg.occupancy_warmup)
                 if ddp is not None:  # each rank probed its own random cells: rank 0's grid for all
                     ddp.sync_occupancy(state.occupancy)
-            in_b = progress(state) >= cfg.pretrain_fraction
-            if (in_b and not cfg.fixed_light and cfg.shading == "pbr"
-                    and state.step % cfg.light_period < cfg.light_steps):
+            if is_light_step(state.cfg, state.step):
                 res = light_step(state, data)
                 res["stage"] = "b-light"
             else:

@@ -148,6 +148,24 @@ def progress(state: TrainState) -> float:
     return min(1.0, state.step / cfg.steps) if cfg.steps else 0.0
 
 
+def is_light_step(cfg, step: int) -> bool:
+    """Whether training step ``step`` (0-based) of a run with config ``cfg`` is an eq. 22 l_env step rather than a
+    field step: in stage b (``step / cfg.steps >= cfg.pretrain_fraction``), the first ``cfg.light_steps`` of every
+    ``cfg.light_period`` steps, unless the run has fixed lighting or radiance shading. A ``minutes`` budget has no step
+    count until it is calibrated (stage a until then), as :func:`progress` reads it."""
+    if cfg.fixed_light or cfg.shading != "pbr" or not cfg.steps:
+        return False
+    return min(1.0, step / cfg.steps) >= cfg.pretrain_fraction and step % cfg.light_period < cfg.light_steps
+
+
+def field_steps(cfg, steps: int | None = None) -> int:
+    """How many of the first ``steps`` (default ``cfg.steps``) training steps optimise the field: the rest are eq. 22
+    l_env steps (:func:`is_light_step`). At a fixed step count the lighting stage takes its steps from the field's
+    (600 steps with the defaults: 560 field steps)."""
+    n = int(cfg.steps if steps is None else steps)
+    return n - sum(1 for k in range(n) if is_light_step(cfg, k))
+
+
 def lr_progress(state: TrainState) -> float:
     """Fraction of the learning-rate decay done: none during the first :attr:`TrainConfig.calibration_steps`
     steps (their schedule must not depend on the run's length), then exponential decay to the end."""
