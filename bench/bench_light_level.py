@@ -32,6 +32,7 @@ sys.path.insert(0, str(ROOT))
 
 from toolkit.io import linear_to_srgb, srgb_to_linear  # noqa: E402
 from toolkit.lightnet import aggregate_sh, load_lightnet, predict_sh  # noqa: E402
+from toolkit.metrics import env_light_l2  # noqa: E402
 from toolkit.scene import load_scene  # noqa: E402
 from toolkit.sh import SH_C0  # noqa: E402
 from toolkit.train.data import grey_ambient_sh  # noqa: E402
@@ -50,9 +51,15 @@ def gallery_levels(path: str, model) -> dict | None:
     lin = srgb_to_linear(srgb)
     pix = lin.permute(1, 0, 2, 3).reshape(3, -1)
     pix = pix[:, :: max(1, pix.shape[1] // 2_000_000)]  # torch.quantile's input limit
-    row = {"gallery": path, "truth": sc.sh[0].float().numpy(),
-           "net": aggregate_sh(predict_sh(model, srgb), "mean")[0].numpy(),
-           "grey": grey_ambient_sh(float(lin.mean()))[0].numpy()}
+    net_sh = aggregate_sh(predict_sh(model, srgb), "mean")
+    grey_sh = grey_ambient_sh(float(lin.mean()))
+    truth = sc.sh.float()
+    row = {"gallery": path, "truth": truth[0].numpy(), "net": net_sh[0].numpy(), "grey": grey_sh[0].numpy()}
+    # the whole light (27 coefficients, eq. 36), per scene as `dars priors light` gives it, against the baselines
+    whole = {"net": net_sh, "grey": grey_sh, "zero": torch.zeros_like(truth)}
+    if model.meta.get("train_mean_sh") is not None:
+        whole["train_mean"] = torch.tensor(model.meta["train_mean_sh"]).float()
+    row["env_l2"] = {k: float(env_light_l2(v.float(), truth)) for k, v in whole.items()}
     for p in QUANTILES:
         row[f"bound{p}"] = (torch.quantile(pix, p, dim=1) / SH_C0).numpy()
     return row
@@ -100,6 +107,16 @@ def main() -> int:
         print(f"{k:24s} {e.mean():27.3f} {np.median(e):7.3f} {e.max():6.3f}")
     ref = summary["grey"]["mean"]
     print(f"ratio net / grey (mean): {summary['net']['mean'] / ref:.3f}")
+    keys = list(rows[0]["env_l2"])
+    print(f"\n{'whole light, Env-light L2 (eq. 36)':40s} " + " ".join(f"{k:>10s}" for k in keys))
+    for r in rows:
+        print(f"{Path(r['gallery']).name:40s} " + " ".join(f"{r['env_l2'][k]:10.2f}" for k in keys))
+    env = {k: np.array([r["env_l2"][k] for r in rows]) for k in keys}
+    print(f"{'mean':40s} " + " ".join(f"{env[k].mean():10.2f}" for k in keys))
+    print(f"{'worst':40s} " + " ".join(f"{env[k].max():10.2f}" for k in keys))
+    print(f"net / grey (mean of per-gallery ratios): {(env['net'] / env['grey']).mean():.3f}; galleries where the net "
+          f"is worse than no light: {int((env['net'] > env['zero']).sum())} of {len(rows)}")
+    summary["env_l2"] = {k: {"mean": float(v.mean()), "worst": float(v.max())} for k, v in env.items()}
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     doc = {"galleries": [r["gallery"] for r in rows], "summary": summary,
