@@ -144,18 +144,22 @@ def init_state(cfg: TrainConfig, data: TrainData) -> TrainState:
 def progress(state: TrainState) -> float:
     """Fraction of the run done, in [0, 1], by steps (a ``minutes`` budget is turned into steps by
     :func:`calibrate_steps`; until then the run is in its first, length-independent steps: 0)."""
-    cfg = state.cfg
-    return min(1.0, state.step / cfg.steps) if cfg.steps else 0.0
+    return _progress_at(state.cfg, state.step)
+
+
+def _progress_at(cfg, step: int) -> float:
+    """:func:`progress` of step ``step`` of a run with config ``cfg``."""
+    return min(1.0, step / cfg.steps) if cfg.steps else 0.0
 
 
 def is_light_step(cfg, step: int) -> bool:
     """Whether training step ``step`` (0-based) of a run with config ``cfg`` is an eq. 22 l_env step rather than a
     field step: in stage b (``step / cfg.steps >= cfg.pretrain_fraction``), the first ``cfg.light_steps`` of every
     ``cfg.light_period`` steps, unless the run has fixed lighting or radiance shading. A ``minutes`` budget has no step
-    count until it is calibrated (stage a until then), as :func:`progress` reads it."""
-    if cfg.fixed_light or cfg.shading != "pbr" or not cfg.steps:
+    count until it is calibrated (progress 0 until then), as :func:`progress` reads it."""
+    if cfg.fixed_light or cfg.shading != "pbr":
         return False
-    return min(1.0, step / cfg.steps) >= cfg.pretrain_fraction and step % cfg.light_period < cfg.light_steps
+    return _progress_at(cfg, step) >= cfg.pretrain_fraction and step % cfg.light_period < cfg.light_steps
 
 
 def field_steps(cfg, steps: int | None = None) -> int:
