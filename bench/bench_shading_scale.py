@@ -10,7 +10,9 @@ finished runs, with the split's ground-truth normals and albedo (ground truth us
 * ``albedo pred / true``: mean rendered albedo over the mean true albedo on the same pixels;
 * ``E_truth / E_true``: the ground-truth light's irradiance at the true normals over the run's light's — how far the
   light *level* itself is off (the light prior's share of the albedo error);
-* the normal MAE on those pixels.
+* the normal MAE on those pixels, of the normal head and of the rendered depth's own normals (central differences
+  over ±k pixels of the rendered surface points, k = 1 as the depth-normal loss takes them, and k = 4): how good the
+  target the depth-normal term pulls the head toward is.
 
 If the normals explain the albedo, ``albedo pred / true`` ≈ ``(E_true / E_pred) · (E_truth / E_true)``.
 
@@ -60,11 +62,36 @@ def shading_scale(l_env: torch.Tensor, normal_pred: torch.Tensor, normal_true: t
             "normal_mae": float(torch.rad2deg(torch.acos(cos)).mean()), "pixels": int(normal_pred.shape[0])}
 
 
+def depth_normals(points: torch.Tensor, view_dirs: torch.Tensor, k: int = 1) -> torch.Tensor:
+    """Unit normals of a rendered surface from central differences over ±k pixels, turned toward the camera (as
+    :func:`toolkit.losses.depth_normal_loss` forms its target with k = 1).
+
+    Args:
+        points: float [H, W, 3] rendered surface points; view_dirs: float [H, W, 3] ray directions; k >= 1.
+
+    Returns:
+        float [H - 2k, W - 2k, 3] (the interior pixels).
+    """
+    import torch.nn.functional as F
+
+    du = points[k:-k, 2 * k:] - points[k:-k, :-2 * k]
+    dv = points[2 * k:, k:-k] - points[:-2 * k, k:-k]
+    n = F.normalize(torch.cross(du, dv, dim=-1), dim=-1, eps=1e-9)
+    return torch.where((n * view_dirs[k:-k, k:-k]).sum(-1, keepdim=True) > 0, -n, n)
+
+
+def _mae_deg(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float(torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1.0, 1.0))).mean())
+
+
 def pooled(rows: list[dict]) -> dict:
     """Pixel-weighted means over views, and the ratios the module docstring defines."""
     n = sum(r["pixels"] for r in rows)
     m = {k: sum(r[k] * r["pixels"] for r in rows) / n for k in ("E_pred", "E_true", "albedo_pred", "albedo_true",
                                                                   "normal_mae")}
+    for k in ("depth_normal_mae_k1", "depth_normal_mae_k4"):  # per view (interior pixels), when measured
+        vals = [r[k] for r in rows if r.get(k) is not None]
+        m[k] = sum(vals) / len(vals) if vals else None
     truth = None if any(r["E_truth"] is None for r in rows) else sum(r["E_truth"] * r["pixels"] for r in rows) / n
     m.update(pixels=n, E_pred_over_true=m["E_pred"] / max(m["E_true"], 1e-12),
              albedo_pred_over_true=m["albedo_pred"] / max(m["albedo_true"], 1e-12),
@@ -74,6 +101,7 @@ def pooled(rows: list[dict]) -> dict:
 
 def run_one(run_dir: str, views: list[int], split: str) -> dict:
     from toolkit._checks import DarsError
+    from toolkit.cameras import generate_rays
     from toolkit.scene import load_scene
     from toolkit.train import load_run
 
@@ -94,8 +122,17 @@ def run_one(run_dir: str, views: list[int], split: str) -> dict:
             m = (n_gt.abs().sum(-1) > 0) & (out.opacity > 0.5)
             if not bool(m.any()):
                 continue
-            rows.append(shading_scale(run.l_env, out.normal[m], n_gt[m], out.albedo[m],
-                                      sc.load_extra(i, "albedo").permute(1, 2, 0)[m], truth))
+            row = shading_scale(run.l_env, out.normal[m], n_gt[m], out.albedo[m],
+                                sc.load_extra(i, "albedo").permute(1, 2, 0)[m], truth)
+            h, w = out.depth.shape
+            rays = generate_rays(sc.cameras, [i])
+            d = rays.directions.reshape(h, w, 3)
+            pts = rays.origins.reshape(h, w, 3) + d * (out.depth / rays.z_scale.reshape(h, w))[..., None]
+            for k in (1, 4):
+                mk = m[k:-k, k:-k]
+                row[f"depth_normal_mae_k{k}"] = (_mae_deg(depth_normals(pts, d, k)[mk], n_gt[k:-k, k:-k][mk])
+                                                  if bool(mk.any()) else None)
+            rows.append(row)
     if not rows:
         raise DarsError(f"{run_dir}: none of views {views} has a rendered surface with a ground-truth normal")
     return {"run": run_dir, "views": len(rows), **pooled(rows)}
@@ -122,7 +159,8 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError:
         ap.error(f"--views {a.views!r}: give comma-separated view indices, e.g. 0,5,10,15")
     results = []
-    print("run                                        normal MAE  E_pred/E_true  albedo pred/true  E_truth/E_true")
+    print("run                                        normal MAE  depth n. k=1/k=4  E_pred/E_true  albedo pred/true  "
+          "E_truth/E_true")
     for r in a.runs:
         try:
             res = run_one(r, views, a.split)
@@ -131,7 +169,9 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         results.append(res)
         t = "n/a" if res["E_truth_over_true"] is None else f"{res['E_truth_over_true']:.2f}"
-        print(f"{r[-42:]:<42} {res['normal_mae']:9.1f}° {res['E_pred_over_true']:14.2f} "
+        dn = "/".join("n/a" if res[k] is None else f"{res[k]:.1f}°" for k in ("depth_normal_mae_k1",
+                                                                              "depth_normal_mae_k4"))
+        print(f"{r[-42:]:<42} {res['normal_mae']:9.1f}° {dn:>17} {res['E_pred_over_true']:14.2f} "
               f"{res['albedo_pred_over_true']:17.2f} {t:>15}", flush=True)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -62,3 +62,17 @@ def test_main_without_runs_skips_and_a_missing_run_is_a_clear_error(capsys, tmp_
     assert "skipped" in capsys.readouterr().out
     assert bss.main([str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_depth_normals_of_a_plane_face_the_camera():
+    h = w = 9
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    d = torch.nn.functional.normalize(torch.stack([(u - 4) / 8, (v - 4) / 8, torch.ones_like(u)], -1), dim=-1)
+    pts = d * (2.0 / d[..., 2:])  # the plane z = 2 seen from the origin
+    for k in (1, 2):
+        n = bss.depth_normals(pts, d, k)
+        assert n.shape == (h - 2 * k, w - 2 * k, 3)
+        assert torch.allclose(n, torch.tensor([0.0, 0.0, -1.0]).expand_as(n), atol=1e-5)
+    bumpy = pts + 0.05 * torch.randn(h, w, 1, generator=torch.Generator().manual_seed(0)) * d
+    assert bss._mae_deg(bss.depth_normals(bumpy, d, 1), torch.tensor([0.0, 0.0, -1.0])) > \
+        bss._mae_deg(bss.depth_normals(bumpy, d, 3), torch.tensor([0.0, 0.0, -1.0]))  # a wider stencil smooths noise
