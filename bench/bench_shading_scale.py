@@ -27,7 +27,6 @@ Writes ``bench_shading_scale.json`` under ``--out``.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -55,30 +54,11 @@ def shading_scale(l_env: torch.Tensor, normal_pred: torch.Tensor, normal_true: t
 
     if normal_pred.shape[0] == 0:
         raise ValueError("no pixels with a ground-truth normal and a rendered surface in this view")
-    cos = (normal_pred * normal_true).sum(-1).clamp(-1.0, 1.0)
     return {"E_pred": float(irradiance_sh(l_env, normal_pred).mean()),
             "E_true": float(irradiance_sh(l_env, normal_true).mean()),
             "E_truth": None if sh_truth is None else float(irradiance_sh(sh_truth, normal_true).mean()),
             "albedo_pred": float(albedo_pred.mean()), "albedo_true": float(albedo_true.mean()),
-            "normal_mae": float(torch.rad2deg(torch.acos(cos)).mean()), "pixels": int(normal_pred.shape[0])}
-
-
-def depth_normals(points: torch.Tensor, view_dirs: torch.Tensor, k: int = 1) -> torch.Tensor:
-    """Unit normals of a rendered surface from central differences over ±k pixels, turned toward the camera (as
-    :func:`toolkit.losses.depth_normal_loss` forms its target with k = 1).
-
-    Args:
-        points: float [H, W, 3] rendered surface points; view_dirs: float [H, W, 3] ray directions; k >= 1.
-
-    Returns:
-        float [H - 2k, W - 2k, 3] (the interior pixels).
-    """
-    import torch.nn.functional as F
-
-    du = points[k:-k, 2 * k:] - points[k:-k, :-2 * k]
-    dv = points[2 * k:, k:-k] - points[:-2 * k, k:-k]
-    n = F.normalize(torch.cross(du, dv, dim=-1), dim=-1, eps=1e-9)
-    return torch.where((n * view_dirs[k:-k, k:-k]).sum(-1, keepdim=True) > 0, -n, n)
+            "normal_mae": _mae_deg(normal_pred, normal_true), "pixels": int(normal_pred.shape[0])}
 
 
 def _mae_deg(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -103,6 +83,7 @@ def pooled(rows: list[dict]) -> dict:
 def run_one(run_dir: str, views: list[int], split: str) -> dict:
     from toolkit._checks import DarsError
     from toolkit.cameras import generate_rays
+    from toolkit.losses import depth_normals
     from toolkit.scene import load_scene
     from toolkit.train import load_run
 
@@ -128,7 +109,11 @@ def run_one(run_dir: str, views: list[int], split: str) -> dict:
             h, w = out.depth.shape
             rays = generate_rays(sc.cameras, [i])
             d = rays.directions.reshape(h, w, 3)
-            pts = rays.origins.reshape(h, w, 3) + d * (out.depth / rays.z_scale.reshape(h, w))[..., None]
+
+            def surface(depth: torch.Tensor) -> torch.Tensor:  # camera-axis depth -> points along the rays
+                return rays.origins.reshape(h, w, 3) + d * (depth / rays.z_scale.reshape(h, w))[..., None]
+
+            pts = surface(out.depth)
             for k in (1, 4):
                 mk = m[k:-k, k:-k]
                 row[f"depth_normal_mae_k{k}"] = (_mae_deg(depth_normals(pts, d, k)[mk], n_gt[k:-k, k:-k][mk])
@@ -136,10 +121,10 @@ def run_one(run_dir: str, views: list[int], split: str) -> dict:
             row["gt_depth_normal_mae_k1"] = None  # the same construction on the true depth: checks the method
             if "depth" in sc.extras_available():
                 gd = sc.load_extra(i, "depth")
-                gp = rays.origins.reshape(h, w, 3) + d * (gd / rays.z_scale.reshape(h, w))[..., None]
                 mk = (n_gt[1:-1, 1:-1].abs().sum(-1) > 0) & (gd[1:-1, 1:-1] > 0)
                 if bool(mk.any()):
-                    row["gt_depth_normal_mae_k1"] = _mae_deg(depth_normals(gp, d, 1)[mk], n_gt[1:-1, 1:-1][mk])
+                    row["gt_depth_normal_mae_k1"] = _mae_deg(depth_normals(surface(gd), d, 1)[mk],
+                                                             n_gt[1:-1, 1:-1][mk])
             rows.append(row)
     if not rows:
         raise DarsError(f"{run_dir}: none of views {views} has a rendered surface with a ground-truth normal")

@@ -1,11 +1,12 @@
 """bench/bench_shading_scale.py: irradiance at rendered vs true normals, and the albedo level it implies."""
 
 import importlib.util
-import math
 from pathlib import Path
 
 import pytest
 import torch
+
+from toolkit.losses import depth_normals
 
 _PATH = Path(__file__).resolve().parents[1] / "bench" / "bench_shading_scale.py"
 _spec = importlib.util.spec_from_file_location("bench_shading_scale", _PATH)
@@ -70,9 +71,9 @@ def test_depth_normals_of_a_plane_face_the_camera():
     d = torch.nn.functional.normalize(torch.stack([(u - 4) / 8, (v - 4) / 8, torch.ones_like(u)], -1), dim=-1)
     pts = d * (2.0 / d[..., 2:])  # the plane z = 2 seen from the origin
     for k in (1, 2):
-        n = bss.depth_normals(pts, d, k)
+        n = depth_normals(pts, d, k)
         assert n.shape == (h - 2 * k, w - 2 * k, 3)
         assert torch.allclose(n, torch.tensor([0.0, 0.0, -1.0]).expand_as(n), atol=1e-5)
     bumpy = pts + 0.05 * torch.randn(h, w, 1, generator=torch.Generator().manual_seed(0)) * d
-    assert bss._mae_deg(bss.depth_normals(bumpy, d, 1), torch.tensor([0.0, 0.0, -1.0])) > \
-        bss._mae_deg(bss.depth_normals(bumpy, d, 3), torch.tensor([0.0, 0.0, -1.0]))  # a wider stencil smooths noise
+    assert bss._mae_deg(depth_normals(bumpy, d, 1), torch.tensor([0.0, 0.0, -1.0])) > \
+        bss._mae_deg(depth_normals(bumpy, d, 3), torch.tensor([0.0, 0.0, -1.0]))  # a wider stencil smooths noise

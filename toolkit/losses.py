@@ -40,7 +40,7 @@ import torch.nn.functional as F
 from .scene import UNLABELLED
 
 __all__ = ["LossWeights", "rgb_l1", "psnr_loss", "ssim_loss", "material_loss", "semantic_loss",
-           "normal_consistency_loss", "depth_normal_loss", "orientation_loss", "sparse_depth_loss",
+           "normal_consistency_loss", "depth_normal_loss", "depth_normals", "orientation_loss", "sparse_depth_loss",
            "light_residual_loss", "compactness_loss",
            "PAINTING", "METAL_TARGET", "PAINTING_ROUGHNESS"]
 
@@ -172,6 +172,24 @@ def normal_consistency_loss(pred_normals: torch.Tensor, density_gradient: torch.
     return ((pred_normals - g).square().sum(-1) * w).sum() / w.sum().clamp_min(1e-12)
 
 
+def depth_normals(points: torch.Tensor, view_dirs: torch.Tensor, k: int = 1) -> torch.Tensor:
+    """Unit normals of a rendered surface from central differences over ±k pixels, turned toward the camera: the
+    target of :func:`depth_normal_loss` (k = 1). Zero where the differences are degenerate.
+
+    Args:
+        points: float [..., H, W, 3] surface points of image patches (row-major), H, W ≥ 2k + 1.
+        view_dirs: float [..., H, W, 3] ray directions (camera → scene).
+        k: half-width of the stencil in pixels (≥ 1).
+
+    Returns:
+        float [..., H − 2k, W − 2k, 3] (the interior pixels).
+    """
+    du = points[..., k:-k, 2 * k:, :] - points[..., k:-k, :-2 * k, :]
+    dv = points[..., 2 * k:, k:-k, :] - points[..., :-2 * k, k:-k, :]
+    n = F.normalize(torch.cross(du, dv, dim=-1), dim=-1, eps=1e-9)
+    return torch.where((n * view_dirs[..., k:-k, k:-k, :]).sum(-1, keepdim=True) > 0, -n, n)
+
+
 def depth_normal_loss(points: torch.Tensor, normals: torch.Tensor, view_dirs: torch.Tensor,
                       weights: torch.Tensor) -> torch.Tensor:
     """Σ w (1 − n̂ · n_depth) / Σ w over the interior pixels of image patches: the rendered normal n̂ against the
@@ -188,12 +206,7 @@ def depth_normal_loss(points: torch.Tensor, normals: torch.Tensor, view_dirs: to
         view_dirs: float [P, s, s, 3] ray directions (camera → scene).
         weights: float [P, s, s] per-pixel weights (e.g. opacity x importance; treated as constants).
     """
-    p = points.detach()
-    du = p[:, 1:-1, 2:] - p[:, 1:-1, :-2]
-    dv = p[:, 2:, 1:-1] - p[:, :-2, 1:-1]
-    nd = F.normalize(torch.cross(du, dv, dim=-1), dim=-1, eps=1e-9)
-    d = view_dirs[:, 1:-1, 1:-1]
-    nd = torch.where((nd * d).sum(-1, keepdim=True) > 0, -nd, nd)
+    nd = depth_normals(points.detach(), view_dirs, 1)
     ok = (nd.square().sum(-1) > 0.5).to(points.dtype)
     w = weights[:, 1:-1, 1:-1].detach() * ok
     cos = (normals[:, 1:-1, 1:-1] * nd).sum(-1)
