@@ -62,7 +62,10 @@ def shading_scale(l_env: torch.Tensor, normal_pred: torch.Tensor, normal_true: t
 
 
 def _mae_deg(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float(torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1.0, 1.0))).mean())
+    """:func:`toolkit.metrics.normal_mae_deg` (the evaluation's normal MAE) of normals given as [..., 3] rows."""
+    from toolkit.metrics import normal_mae_deg
+
+    return float(normal_mae_deg(a.reshape(-1, 3).T[..., None], b.expand_as(a).reshape(-1, 3).T[..., None]))
 
 
 def pooled(rows: list[dict]) -> dict:
