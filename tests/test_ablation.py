@@ -295,3 +295,21 @@ def test_field_steps_note_names_the_steps_the_lighting_stage_takes():
     assert _field_steps_note(same) == []
     old = {"variants": [{"label": "Full DARS-NeRF", "training": {"steps": 600}}]}  # ablation.json before field_steps
     assert _field_steps_note(old) == []
+
+
+def test_cli_ablate_device_trains_and_evaluates_there(tmp_path, capsys):
+    """--device reaches every variant's config (and the evaluation's load); CUDA on a machine without it is refused."""
+    import torch
+
+    from toolkit.cli import main
+
+    scene = make_scene(tmp_path / "s", n_train=4, n_test=1)
+    out = tmp_path / "o"
+    assert main(["ablate", str(scene), "--out", str(out), "--steps", "2", "--variants", "nerf", "--batch-rays", "64",
+                 "--threads", "1", "--device", "cpu", "--json", "--quiet"]) == 0
+    assert json.loads((out / "nerf" / "config.json").read_text())["config"]["device"] == "cpu"
+    capsys.readouterr()
+    if not torch.cuda.is_available():
+        assert main(["ablate", str(scene), "--out", str(tmp_path / "c"), "--steps", "2", "--variants", "nerf",
+                     "--threads", "1", "--device", "cuda", "--quiet"]) == 2
+        assert "CUDA is not available" in capsys.readouterr().err

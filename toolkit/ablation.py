@@ -375,6 +375,7 @@ def run_ablation(
         log: progress lines (default: stderr).
         priors_root: the prior stages' outputs every variant reads (as ``dars train --priors``; default
             ``<scene>/priors``); variants that switch a prior off ignore it.
+            ``overrides={"device": ...}`` picks where every variant trains; it is evaluated on the same device.
         seeds: several seeds: every variant is trained once per seed (exclusive with ``seed``).
 
     Returns:
@@ -390,6 +391,7 @@ def run_ablation(
     from .report import write_ablation_report, write_eval_report
     from .train.run import load_run
     from .train import TrainConfig, make_config, train
+    from .train.step import train_device
 
     log = log or (lambda m: print(m, file=sys.stderr))
     if bool(steps) == bool(minutes):
@@ -463,7 +465,7 @@ def run_ablation(
             else:
                 log(f"{tag}: training ({budget}, preset {preset}, seed {s}) -> {run_dir}")
                 train(scene, run_dir, cfg, progress_bar=progress_bar, log=log, priors_root=priors_root)
-            run = load_run(run_dir)
+            run = load_run(run_dir, device=str(train_device(cfg)))
             log(f"{tag}: trained {run.step} steps in {run.elapsed / 60:.2f} min; evaluating")
             ev = evaluate_run(run, split, ecfg, log=log)
             vc = ev.details.get("view_consistency")

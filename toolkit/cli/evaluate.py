@@ -65,6 +65,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                     "into OUT/priors)")
     q.add_argument("--force", action="store_true", help="write into a non-empty folder beside its files")
     q.add_argument("--threads", type=COUNT, default=0, help="CPU threads (default: all cores)")
+    q.add_argument("--device", default="auto",
+                   help="auto (CUDA when present), cpu or cuda[:N]: every variant trains and is evaluated there")
     q.add_argument("--json", action="store_true", help="print only ablation.json on stdout")
     q.add_argument("--quiet", action="store_true", help="no progress bars")
     q.set_defaults(func=cmd_ablate)
@@ -169,6 +171,8 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     from ..report import ablation_text
 
     overrides: dict = {"batch_rays": args.batch_rays} if args.batch_rays else {}
+    if args.device != "auto":
+        overrides["device"] = args.device
     if args.labels != "predicted":
         overrides["labels"] = args.labels
     priors = args.priors

@@ -59,7 +59,8 @@ MAX_BAD_STEPS = 5
 """A step whose gradients are not finite is skipped (no update); this many in a row stop the run."""
 
 
-def _device(cfg: TrainConfig) -> torch.device:
+def train_device(cfg: TrainConfig) -> torch.device:
+    """Where a run with ``cfg`` trains: ``cfg.device``, with ``auto`` resolved to CUDA when present, else the CPU."""
     if cfg.device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(cfg.device)
@@ -96,7 +97,7 @@ def _background_for(scene: Scene, cfg: TrainConfig, images: PackedViews | None =
 
 def init_state(cfg: TrainConfig, data: TrainData) -> TrainState:
     """Fresh training state for ``data`` (seeded)."""
-    dev = _device(cfg)
+    dev = train_device(cfg)
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     scene = data.scene
