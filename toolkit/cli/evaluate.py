@@ -170,9 +170,9 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     from ..evaluate import EvalConfig
     from ..report import ablation_text
 
-    overrides: dict = {"batch_rays": args.batch_rays} if args.batch_rays else {}
-    if args.device != "auto":
-        overrides["device"] = args.device
+    overrides: dict = {"device": args.device}  # as dars train: always passed, "auto" being the config's default
+    if args.batch_rays:
+        overrides["batch_rays"] = args.batch_rays
     if args.labels != "predicted":
         overrides["labels"] = args.labels
     priors = args.priors
