@@ -205,6 +205,28 @@ def test_cli_eval_json_only_on_stdout(run_dir, capsys, monkeypatch):
     assert "PSNR (dB)" in out and "View consistency" in out and "unavailable:" in out and "lpips:" in out
 
 
+def test_cli_eval_device(run_dir, capsys, monkeypatch):
+    """--device picks where the run is loaded and rendered; CUDA on a machine without it, or an unknown device, is a
+    clear error before any work."""
+    import torch
+
+    import toolkit.train.run as run_module
+    from toolkit.cli import main
+
+    seen = []
+    real = run_module.load_run
+    monkeypatch.setattr(run_module, "load_run", lambda *a, **k: seen.append(k.get("device")) or real(*a, **k))
+    assert main(["eval", str(run_dir), "--json", "--limit", "1", "--threads", "1", "--device", "cpu",
+                 "--out", str(run_dir / "eval_cpu")]) == 0
+    assert seen == ["cpu"] and json.loads(capsys.readouterr().out)["psnr"] is not None
+    assert main(["eval", str(run_dir), "--device", "tpu7", "--out", str(run_dir / "eval_x")]) == 2
+    assert "--device 'tpu7'" in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        assert main(["eval", str(run_dir), "--device", "cuda", "--out", str(run_dir / "eval_c")]) == 2
+        assert "CUDA is not available" in capsys.readouterr().err
+    assert seen == ["cpu"]  # the refused calls loaded nothing
+
+
 def test_cli_eval_rejects_non_runs(tmp_path, capsys):
     from toolkit.cli import main
 

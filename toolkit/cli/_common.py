@@ -27,6 +27,29 @@ def set_threads(n: int) -> None:
         torch.set_num_threads(n)
 
 
+def eval_device(name: str) -> str:
+    """``--device auto|cpu|cuda[:N]`` of a command that loads a run: ``auto`` is CUDA when present, else the CPU.
+
+    Raises:
+        DarsError: CUDA asked for on a machine without it, or a device name torch does not know.
+    """
+    import torch
+
+    from .._checks import DarsError
+
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise DarsError(f"--device {name!r}: give auto, cpu or cuda[:N]") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise DarsError(f"--device {name}: CUDA is not available on this machine (give --device cpu or auto)")
+    if dev.type not in ("cpu", "cuda"):
+        raise DarsError(f"--device {name!r}: give auto, cpu or cuda[:N]")
+    return str(dev)
+
+
 def number(kind: type = float, min: float | None = None, max: float | None = None, above: float | None = None):
     """An argparse ``type=`` that accepts a finite number of ``kind`` (int or float) in range, else names the rule:
     ``dars train: error: argument --minutes: must be a finite number, got 'nan'``. Checked while parsing, before any

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from .._checks import DarsError
-from ._common import COUNT, log, number, print_json, set_threads
+from ._common import COUNT, eval_device, log, number, print_json, set_threads
 
 EVAL_FILES = ("metrics.json", "report.md", "curves.png", "weights.png", "brightness.png", "test_grid.png")
 """What ``dars eval`` writes (:func:`toolkit.report.write_eval_report`)."""
@@ -29,6 +29,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--out", help="output directory (default: RUN/eval)")
     q.add_argument("--force", action="store_true", help="write into a non-empty folder beside its files")
     q.add_argument("--threads", type=COUNT, default=0, help="CPU threads (default: all cores)")
+    q.add_argument("--device", default="auto",
+                   help="auto (CUDA when present), cpu or cuda[:N]: where the run is loaded and rendered")
     q.add_argument("--quiet", action="store_true", help="no progress bar")
     q.set_defaults(func=cmd_eval)
 
@@ -96,6 +98,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise DarsError(f"--lpips-weights {args.lpips_weights}: not found (give the LPIPS weight file(s) or their "
                         "folder, or leave the option out: LPIPS is then reported as unavailable)")
     find_run(run_dir, args.checkpoint)
+    device = eval_device(args.device)
     option = "--out" if args.out else "the default output folder (RUN/eval; --out picks another)"
     out = OutputDir(args.out or run_dir / "eval", "eval", force=args.force, option=option).check(EVAL_FILES)
 
@@ -105,7 +108,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     cfg = EvalConfig(limit=args.limit, lpips_weights=args.lpips_weights, reference_mesh=args.reference_mesh,
                      mesh_resolution=args.mesh_resolution, lux_factor=args.lux_factor, progress=not (args.quiet or args.json))
-    run = load_run(run_dir, args.checkpoint)
+    run = load_run(run_dir, args.checkpoint, device=device)
     result = evaluate_run(run, args.split, cfg, log=log)
     with out:
         written = write_eval_report(result, out.path)
