@@ -270,3 +270,29 @@ def test_chamfer_of_an_analytic_sphere_is_small(run_dir, tmp_path, monkeypatch):
     ch = chamfer_to_reference(load_run(run_dir), ref, resolution=64, samples=5000)
     voxel = 3.2 / 64
     assert ch["faces"] > 100 and ch["value"] < 0.5 * voxel, ch
+
+
+def test_geometry_by_class_matches_a_direct_render(full_eval, run_dir):
+    """details.geometry: median |rendered − GT depth| and mean opacity on the GT-depth pixels, recomputed here."""
+    geo = full_eval.details["geometry"]
+    run = load_run(run_dir)
+    sc = run.load_split("test")
+    dz, op = [], []
+    for i in full_eval.info["view_indices"]:
+        with torch.no_grad():
+            o = run.render(sc.cameras, i)
+        gt = sc.load_extra(i, "depth").reshape(-1)
+        m = gt > 0
+        dz.append((o.depth.reshape(-1)[m] - gt[m]).abs())
+        op.append(o.opacity.reshape(-1)[m])
+    dz, op = torch.cat(dz), torch.cat(op)
+    assert geo["all"]["pixels"] == dz.numel() > 0
+    assert geo["all"]["depth_error_median_m"] == pytest.approx(float(dz.median()), rel=1e-4, abs=1e-5)
+    assert geo["all"]["opacity_mean"] == pytest.approx(float(op.mean()), rel=1e-4, abs=1e-5)
+    if geo["by_class"] is not None:
+        assert sum(v["pixels"] for v in geo["by_class"].values()) <= geo["all"]["pixels"]
+        assert all(0.0 <= v["opacity_mean"] <= 1.0 + 1e-6 for v in geo["by_class"].values())
+    from toolkit.report import write_eval_report
+
+    write_eval_report(full_eval, run_dir / "eval_geo")
+    assert "Rendered depth against the ground truth" in (run_dir / "eval_geo" / "report.md").read_text()

@@ -563,6 +563,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     pooled: dict[str, list[tuple[float, int]]] = {"albedo_mae": [], "roughness_rmse": [], "normal_mae": []}
     aligned_px: list[tuple[torch.Tensor, torch.Tensor]] = []
     pooled_metallic: list[tuple[float, int]] = []
+    geo_px: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = []  # |dz|, opacity, GT class (strided)
     sem_pred, sem_gt = [], []
     mat_rule = ""
     samples_mean: list[float] = []
@@ -620,6 +621,13 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
             row["miou"] = v_miou if math.isfinite(v_miou) else None
             sem_pred.append(sem.to(torch.uint8).reshape(-1))
             sem_gt.append(gt_lab.to(torch.uint8).reshape(-1))
+        if "depth" in extras:  # geometry by class (details.geometry): a strided subset of the GT-depth pixels
+            gt_z = scene.load_extra(i, "depth").reshape(-1)
+            keep = (gt_z > 0).nonzero().squeeze(1)
+            keep = keep[::max(1, math.ceil(keep.numel() * len(views) / _ALIGNED_MAX_PIXELS))]
+            lab = scene.load_extra(i, "semantic").reshape(-1)[keep] if "semantic" in extras else None
+            geo_px.append(((out["depth"].reshape(-1)[keep].cpu() - gt_z[keep]).abs(),
+                           out["opacity"].reshape(-1)[keep].cpu(), lab))
         row["samples_per_ray"] = float(out["samples"].mean())
         samples_mean.append(row["samples_per_ray"])
         per_view.append(row)
@@ -695,6 +703,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
         sampling.update(_weight_figures(run, cfg, figures))
 
     details = {
+        "geometry": _geometry_by_class(geo_px),
         "view_consistency": vc_detail,
         "miou_per_class": miou_per_class,
         "pixels": pixels,
@@ -710,6 +719,9 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
                                   "(metrics.albedo_mae_aligned; albedo_scale > 1: the albedo is too dark), same mask",
             "metallic_mae": "mean |metallic - GT metallic| on the material mask",
             "semantics": "argmax of rendered logits; 255 where rendered opacity < 0.5",
+            "geometry": "on pixels with a ground-truth depth: median |rendered depth - GT depth| (metres, along the "
+                        "camera axis) and mean rendered opacity, over all of them and per ground-truth class; "
+                        "opacity well below 1 on a class means the learned background shows through it",
             "pooling": "psnr/ssim/flip/lpips: mean of per-view values; albedo/roughness/normal: over all masked "
                        "pixels of all views; miou: one confusion over all views",
         },
@@ -736,6 +748,25 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
             "lpips_weights": (cfg.lpips_weights or "DARS_LPIPS_WEIGHTS") if lpips_ok else None}
     return EvalResult(metrics=metrics, unavailable=unavailable, per_view=per_view, details=details,
                       training=training_info(run), info=info, figures=figures)
+
+
+def _geometry_by_class(px: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]]) -> dict | None:
+    """``details.geometry``: median depth error and mean opacity on GT-depth pixels, overall and per GT class."""
+    if not px:
+        return None
+    dz = torch.cat([p[0] for p in px]).float()
+    op = torch.cat([p[1] for p in px]).float()
+
+    def stats(m: torch.Tensor | None) -> dict:
+        d, o = (dz, op) if m is None else (dz[m], op[m])
+        return {"depth_error_median_m": float(d.median()), "opacity_mean": float(o.mean()), "pixels": int(d.numel())}
+
+    res = {"all": stats(None), "by_class": None}
+    if all(p[2] is not None for p in px):
+        lab = torch.cat([p[2] for p in px]).long()
+        res["by_class"] = {name: {**stats(lab == c), "share": float((lab == c).float().mean())}
+                           for c, name in enumerate(SEMANTIC_CLASSES) if bool((lab == c).any())}
+    return res
 
 
 def _display_maps(out: dict[str, torch.Tensor], srgb: bool) -> dict[str, np.ndarray]:

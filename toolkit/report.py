@@ -446,6 +446,16 @@ def _eval_markdown(doc: dict, written: dict[str, Path]) -> str:
               f"{_fmt(mat.get('metallic_mae'), '{:.4f}')}.", ""]
     if det.get("miou_per_class"):
         L += ["Per-class IoU: " + ", ".join(f"{k} {_fmt(v, '{:.3f}')}" for k, v in det["miou_per_class"].items()), ""]
+    geo = det.get("geometry")
+    if geo:
+        a = geo["all"]
+        L += [f"Rendered depth against the ground truth: median error **{a['depth_error_median_m']:.3f} m**, mean "
+              f"opacity {a['opacity_mean']:.3f} ({a['pixels']} pixels). Opacity well below 1 on a class means the "
+              "learned background shows through it (a wall explained as environment instead of surface).", ""]
+        if geo.get("by_class"):
+            L += [_md_table(["class", "share of pixels", "median depth error (m)", "mean opacity"],
+                            [[k, f"{v['share']:.2f}", f"{v['depth_error_median_m']:.3f}", f"{v['opacity_mean']:.3f}"]
+                             for k, v in geo["by_class"].items()]), ""]
     ch = det.get("chamfer")
     if ch:
         L += ["## Geometry", ""]
