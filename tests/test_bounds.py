@@ -59,6 +59,31 @@ def test_configs_refuse_bad_values():
         SparsePointsConfig(ratio=1.5)
     with pytest.raises(ConfigError):
         SceneBoxConfig(quantile=0.6)
+    with pytest.raises(ConfigError, match="min_side"):
+        SparsePointsConfig(min_side=0)
+
+
+def _median_rel_depth_error(scene, sp) -> float:
+    sd = sparse_depth_targets(scene, sp)
+    rel = []
+    for v in sd["views"].unique().tolist():
+        m = sd["views"] == v
+        g = scene.load_extra(v, "depth").reshape(scene.cameras.height[v], scene.cameras.width[v])[sd["rows"][m],
+                                                                                                   sd["cols"][m]]
+        rel.append((sd["depth"][m] - g).abs() / g.clamp_min(1e-3))
+    return float(torch.cat(rel).median())
+
+
+def test_small_photos_are_enlarged_for_detection(sample_scene_path):
+    """min_side: the sample's 128-px photos enlarged to 256 px for SIFT: several times the points, none less accurate (ground-
+    truth depth for scoring only)."""
+    from toolkit.scene import load_scene
+
+    scene = load_scene(sample_scene_path, "train")
+    small = triangulate_sparse_points(scene, SparsePointsConfig(max_views=24, neighbours=3))
+    big = triangulate_sparse_points(scene, SparsePointsConfig(max_views=24, neighbours=3, min_side=256))
+    assert len(big) > 3 * len(small) > 0
+    assert _median_rel_depth_error(scene, big) <= _median_rel_depth_error(scene, small) + 1e-3
 
 
 def test_triangulated_points_of_the_sample_lie_on_its_surfaces(sample_scene_path):
