@@ -46,7 +46,8 @@ class SparsePointsConfig:
     (median depth error 0.4-1.1 %, 2.4-7.5 % off by > 10 %, against 0.8-1.5 % and 6.8-12 % with the defaults).
     It is not the default because training on them did not pay (2026-11-27, 600 steps, sparse-depth weight 0.1,
     against the defaults, same seed): test PSNR -1.0 and -0.6 dB on 1000001 (seeds 0, 1) and -0.18 dB on 1000000
-    (seed 0); median rendered-depth error -0.04, -0.11 and +0.01 m; albedo MAE -0.06, -0.03, +0.01. The
+    (seed 0); median rendered-depth error (``dars eval``, ``details.geometry``) -0.01, -0.08 and -0.04 m; albedo
+    MAE -0.06, -0.03 and +0.01. The
     reprojection test stays in detection pixels, so it is stricter in the photo's own pixels. Never above
     ``max_side``."""
     max_features: int = 1500
