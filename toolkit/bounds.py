@@ -47,9 +47,8 @@ class SparsePointsConfig:
     It is not the default because training on them did not pay (2026-11-27, 600 steps, sparse-depth weight 0.1,
     against the defaults, same seed): test PSNR -1.0 and -0.6 dB on 1000001 (seeds 0, 1) and -0.18 dB on 1000000
     (seed 0); median rendered-depth error (``dars eval``, ``details.geometry``) -0.01, -0.08 and -0.04 m; albedo
-    MAE -0.06, -0.03 and +0.01. The
-    reprojection test stays in detection pixels, so it is stricter in the photo's own pixels. Never above
-    ``max_side``."""
+    MAE -0.06, -0.03 and +0.01. The reprojection test stays in detection pixels, so it is stricter in the photo's
+    own pixels. Never above ``max_side``."""
     max_features: int = 1500
     """SIFT keypoints per view."""
     ratio: float = 0.8
