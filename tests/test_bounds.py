@@ -115,14 +115,7 @@ def test_sparse_depth_targets_match_the_samples_depth_maps(sample_scene_path):
     assert len(sd["depth"]) == len(sd["views"]) == len(sd["rows"]) == len(sd["cols"])
     assert len(sd["depth"]) > 1.8 * len(sp)  # both views of almost every point
     assert set(sd["views"].unique().tolist()) <= set(sp.views.reshape(-1).tolist())
-    rel = []
-    for v in sd["views"].unique().tolist():
-        m = sd["views"] == v
-        gt = scene.load_extra(v, "depth").reshape(scene.cameras.height[v], scene.cameras.width[v])
-        g = gt[sd["rows"][m], sd["cols"][m]]
-        rel.append((sd["depth"][m] - g).abs() / g.clamp_min(1e-3))
-    rel = torch.cat(rel)
-    assert float(rel.median()) < 0.03
+    assert _median_rel_depth_error(scene, sp) < 0.03
 
 
 def test_sparse_depth_targets_drop_points_outside_or_behind_the_view(tmp_path):

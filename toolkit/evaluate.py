@@ -615,8 +615,8 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
         if "semantic_logits" in out:
             sem = out["semantic_logits"].argmax(-1)
             sem = torch.where(out["opacity"] >= 0.5, sem, torch.full_like(sem, UNLABELLED))
+        gt_lab = scene.load_extra(i, "semantic") if "semantic" in extras else None  # read once: mIoU and geometry
         if "miou" not in unavailable:
-            gt_lab = scene.load_extra(i, "semantic")
             v_miou, _ = mean_iou(sem, gt_lab)
             row["miou"] = v_miou if math.isfinite(v_miou) else None
             sem_pred.append(sem.to(torch.uint8).reshape(-1))
@@ -625,7 +625,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
             gt_z = scene.load_extra(i, "depth").reshape(-1)
             keep = (gt_z > 0).nonzero().squeeze(1)
             keep = keep[::max(1, math.ceil(keep.numel() * len(views) / _ALIGNED_MAX_PIXELS))]
-            lab = scene.load_extra(i, "semantic").reshape(-1)[keep] if "semantic" in extras else None
+            lab = gt_lab.reshape(-1)[keep] if gt_lab is not None else None
             geo_px.append(((out["depth"].reshape(-1)[keep].cpu() - gt_z[keep]).abs(),
                            out["opacity"].reshape(-1)[keep].cpu(), lab))
         row["samples_per_ray"] = float(out["samples"].mean())
