@@ -67,6 +67,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--depth-normal", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the depth-normal loss: the rendered normal follows the normal of the rendered "
                         "depth map (default: 0.5 for a room, 0 for an object; 0 = off)")
+    q.add_argument("--planar-loss", type=NONNEGATIVE, default=None, metavar="W",
+                   help="weight of the planarity loss: the rendered points of each large textureless region of a "
+                        "photo (plain walls, floors) lie on one plane (default: 0 = off; README, \"A planarity prior for "
+                        "textureless regions\")")
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
     q.add_argument("--albedo-supervision", action="store_true",
                    help="use the scene's ground-truth albedo maps in L_mat (eq. 20); makes albedo MAE circular")
@@ -123,7 +127,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 _LOSS_OPTIONS = (("opacity-loss", "opacity_loss", "opacity"), ("sparse-depth", "sparse_depth", "sparse_depth"),
-                 ("depth-normal", "depth_normal", "depth_normal"))
+                 ("depth-normal", "depth_normal", "depth_normal"), ("planar-loss", "planar_loss", "planar"))
 """Loss-weight options of ``dars train``: (flag, argparse attribute, ``LossWeights`` field); None = by scene type."""
 
 _RESUME_OPTIONS = (

@@ -40,7 +40,11 @@ from ..priors import priors_path, read_priors
 from ..scene import Scene
 from .config import TrainConfig
 
-__all__ = ["TrainData", "prepare_data", "grey_ambient_sh"]
+__all__ = ["TrainData", "prepare_data", "grey_ambient_sh", "PLANAR_PIXELS_PER_REGION"]
+
+PLANAR_PIXELS_PER_REGION = 2048
+"""Pixels kept of each textureless region (``losses.planar``): the loss draws a few dozen a step, and a region of a
+large photo would otherwise hold hundreds of thousands."""
 
 
 @dataclass
@@ -61,6 +65,10 @@ class TrainData:
         colour_init: ColourTransforms or None.
         sparse_depth: pixels with a known depth (``losses.sparse_depth`` > 0;
             :func:`toolkit.bounds.sparse_depth_targets`) or None.
+        planar: the large textureless regions of the photos (``losses.planar`` > 0;
+            :func:`toolkit.regions.textureless_regions`) or None: ``{"views", "rows", "cols"}`` int64 [N] pixels
+            (at most ``PLANAR_PIXELS_PER_REGION`` of each region, drawn at random), ``"offsets"`` int64 [K + 1]
+            (region k is ``offsets[k]:offsets[k + 1]``).
     """
 
     scene: Scene
@@ -75,6 +83,7 @@ class TrainData:
     colour_init: Any
     priors_used: dict
     sparse_depth: dict | None = None
+    planar: dict | None = None
 
     @property
     def nbytes(self) -> int:
@@ -146,6 +155,9 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         albedo_gt = PackedViews.allocate(hs, ws, 3, dtype=torch.float16)
         priors["albedo_supervision"] = "ground truth"
     need_light = pri.light is None
+    want_planar = (cfg.losses.planar or 0.0) > 0 and with_images
+    planar_parts: list[tuple[int, np.ndarray]] = []
+    gen = np.random.default_rng(cfg.seed)
     need_pixels = with_images or computed or need_light
     wcfg = WeightMapConfig()
     bg = torch.tensor(scene.background, dtype=torch.float32).view(3, 1, 1)
@@ -154,6 +166,15 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         img = scene.load_image(i) if need_pixels else None  # float [3, H, W], the only full-precision copy
         if with_images:
             images.write(i, img.permute(1, 2, 0))
+        if want_planar:
+            from ..regions import textureless_regions
+
+            reg = textureless_regions(img).reshape(-1)
+            for k in range(1, int(reg.max()) + 1):
+                px = np.flatnonzero(reg == k)
+                if len(px) > PLANAR_PIXELS_PER_REGION:
+                    px = np.sort(gen.choice(px, PLANAR_PIXELS_PER_REGION, replace=False))
+                planar_parts.append((i, px))
         if computed:
             lab = None if w_labels is None else w_labels.raw(i).long()[None]
             met = None if metal is None else metal.raw(i)[None]
@@ -196,9 +217,20 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
             f"(weight {cfg.losses.sparse_depth:g})" + ("; none: the loss is off" if not len(sparse["depth"]) else ""))
         if not len(sparse["depth"]):
             sparse = None
+    planar = None
+    if want_planar:
+        log(f"[dars] planar loss: {len(planar_parts)} textureless regions in {len({v for v, _ in planar_parts})} "
+            f"of {V} photos (weight {cfg.losses.planar:g})" + ("; none: the loss is off" if not planar_parts else ""))
+        if planar_parts:
+            wv = ws.numpy().astype(np.int64)
+            views = np.concatenate([np.full(len(px), v, np.int64) for v, px in planar_parts])
+            flat = np.concatenate([px for _, px in planar_parts]).astype(np.int64)
+            planar = {"views": torch.from_numpy(views), "rows": torch.from_numpy(flat // wv[views]),
+                      "cols": torch.from_numpy(flat % wv[views]),
+                      "offsets": torch.from_numpy(np.cumsum([0] + [len(px) for _, px in planar_parts]))}
     return TrainData(scene=scene, images=images, labels=labels, metal=metal, weights=wm, distortion=dist,
                      albedo_gt=albedo_gt, l_env_init=l_env, l_env_source=l_src, colour_init=pri.colour,
-                     priors_used=priors, sparse_depth=sparse)
+                     priors_used=priors, sparse_depth=sparse, planar=planar)
 
 
 def _layout_only(heights: torch.Tensor, widths: torch.Tensor) -> PackedViews:

@@ -15,7 +15,8 @@ from .._checks import DarsError
 from ..field import DarsField
 from ..io import linear_to_srgb, srgb_to_linear
 from ..losses import (compactness_loss, depth_normal_loss, light_residual_loss, material_loss, normal_consistency_loss,
-                      orientation_loss, psnr_loss, rgb_l1, semantic_loss, sparse_depth_loss, ssim_loss)
+                      orientation_loss, psnr_loss, rgb_l1, semantic_loss, sparse_depth_loss, ssim_loss,
+                      planarity_loss)
 from ..pipeline import Background, DarsContext, RenderConfig, RenderInputs, render_rays
 from ..pixels import PackedViews
 from ..sampling import OccupancyGrid, build_ray_sampler, neighbour_views, select_rays
@@ -59,11 +60,17 @@ MAX_BAD_STEPS = 5
 """A step whose gradients are not finite is skipped (no update); this many in a row stop the run."""
 
 
-def train_device(cfg: TrainConfig) -> torch.device:
-    """Where a run with ``cfg`` trains: ``cfg.device``, with ``auto`` resolved to CUDA when present, else the CPU."""
-    if cfg.device == "auto":
+def resolve_device(name: str) -> torch.device:
+    """A ``--device`` value as a torch device: ``auto`` is CUDA when present, else the CPU (the one place that rule
+    lives: training, ``dars eval`` and the other commands that load a run use it)."""
+    if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(cfg.device)
+    return torch.device(name)
+
+
+def train_device(cfg: TrainConfig) -> torch.device:
+    """Where a run with ``cfg`` trains: ``cfg.device`` (:func:`resolve_device`)."""
+    return resolve_device(cfg.device)
 
 
 def _border_colour(images: PackedViews, srgb: bool) -> tuple[float, float, float]:
@@ -275,6 +282,33 @@ def _sparse_depth_term(state: TrainState, data: TrainData) -> torch.Tensor:
     return sparse_depth_loss(out.weights, t, ri, t_target, len(pick))
 
 
+PLANAR_REGIONS = 8
+"""Textureless regions drawn per step for ``losses.planar``."""
+PLANAR_RAYS = 32
+"""Rays drawn from each of them (the plane is fitted to these)."""
+
+
+def _planar_term(state: TrainState, data: TrainData) -> torch.Tensor:
+    """:func:`toolkit.losses.planarity_loss` on ``PLANAR_RAYS`` rays of each of ``PLANAR_REGIONS`` regions drawn
+    from ``data.planar``."""
+    pl, dev = data.planar, state.device
+    off = pl["offsets"]
+    K = len(off) - 1
+    reg = torch.randint(0, K, (PLANAR_REGIONS,), generator=state.generator)
+    size = (off[reg + 1] - off[reg]).double()
+    u = torch.rand(PLANAR_REGIONS, PLANAR_RAYS, generator=state.generator, dtype=torch.float64)
+    pick = (off[reg][:, None] + (u * size[:, None]).long().clamp_max(size.long()[:, None] - 1)).reshape(-1)
+    views, rows, cols = pl["views"][pick], pl["rows"][pick], pl["cols"][pick]
+    rays = _training_rays(state, data, views, rows, cols)
+    wray = data.weights.gather(data.weights.flat_index(views, rows, cols)).to(dev)
+    out = _render(state, rays, wray, state.l_env.detach(), deferred=True)  # only depth and opacity are used
+    t = out.depth / rays.z_scale.reshape(-1)  # camera-axis depth -> distance along the ray
+    pts = (rays.origins + rays.directions * t[:, None]).reshape(PLANAR_REGIONS, PLANAR_RAYS, 3)
+    a = out.opacity.reshape(PLANAR_REGIONS, PLANAR_RAYS)
+    scale = (t.detach().reshape(PLANAR_REGIONS, PLANAR_RAYS) * a).sum(1) / a.sum(1).clamp_min(1e-6)
+    return planarity_loss(pts, a, scale)
+
+
 def _depth_normal_term(out, batch: Batch, s: int) -> torch.Tensor:
     """:func:`toolkit.losses.depth_normal_loss` on the batch's s x s SSIM patches (the last rays of the batch)."""
     n0, P = batch.n_random, batch.patch_iw.shape[0]
@@ -364,6 +398,8 @@ def train_step(state: TrainState, data: TrainData) -> dict:
             terms["orientation"] = orientation_loss(out.normal, batch.rays.directions, out.opacity)
     if (lw.sparse_depth or 0.0) > 0 and data.sparse_depth is not None:
         terms["sparse_depth"] = _sparse_depth_term(state, data)
+    if (lw.planar or 0.0) > 0 and data.planar is not None:
+        terms["planar"] = _planar_term(state, data)
     if cfg.semantics and batch.labels is not None and lw.semantic > 0:
         terms["semantic"] = semantic_loss(out.semantic_logits, batch.labels, batch.iw)
     if out.light_residual is not None and lw.light_reg > 0 and out.weights.numel():
@@ -379,7 +415,7 @@ def train_step(state: TrainState, data: TrainData) -> dict:
     weight = {"rgb": lw.rgb, "ssim": lw.ssim, "mat": lw.mat, "psnr_loss": lw.psnr, "eikonal": lw.eikonal,
               "orientation": lw.orientation, "semantic": lw.semantic, "light_reg": lw.light_reg, "colour_reg": lw.colour_reg,
               "compactness": lw.compactness, "opacity": lw.opacity, "sparse_depth": lw.sparse_depth,
-              "depth_normal": lw.depth_normal}
+              "depth_normal": lw.depth_normal, "planar": lw.planar}
     loss = sum(weight[k] * v for k, v in terms.items())
     if not torch.isfinite(loss):
         bad = [k for k, v in terms.items() if not torch.isfinite(v)]
