@@ -296,3 +296,26 @@ def test_geometry_by_class_matches_a_direct_render(full_eval, run_dir):
 
     write_eval_report(full_eval, run_dir / "eval_geo")
     assert "Rendered depth against the ground truth" in (run_dir / "eval_geo" / "report.md").read_text()
+
+
+def test_unreadable_training_labels_cost_the_w_figure_not_the_evaluation(scene_gt, tmp_path, monkeypatch):
+    """A training view whose label file is missing: W is recomputed without it for the figure, the report says so,
+    and every test-view metric is still there (it used to stop the whole `dars eval` after rendering)."""
+    from toolkit.scene import SceneError
+
+    out = tmp_path / "uniform"
+    train(scene_gt, out, small_config(steps=3, dars=False), progress_bar=False, log=lambda m: None)
+    run = load_run(out)
+    tr = run.train_scene
+    real = type(tr).load_extra
+
+    def no_labels(self, i, name):
+        if self is tr and name == "semantic":
+            raise SceneError(f"semantic map of frame {i} not found: gone.png")
+        return real(self, i, name)
+
+    monkeypatch.setattr(type(tr), "load_extra", no_labels)
+    res = evaluate_run(run, "test", EvalConfig(limit=2, weight_views=2, figure_views=0), log=lambda m: None)
+    assert res.metrics["psnr"] is not None
+    w = res.details["sampling"]["w_source"]
+    assert w.startswith("recomputed") and "2 unreadable label/metal map(s)" in w and "gone.png" in w

@@ -423,10 +423,12 @@ def chamfer_to_reference(run, reference_mesh: str | Path, resolution: int = 128,
             "units": "metres (symmetric mean point-to-surface distance, toolkit.mesh.mesh_distance)"}
 
 
-def _material_region(scene: Scene, i: int, extras: list[str]) -> tuple[torch.Tensor, str]:
-    depth = scene.load_extra(i, "depth") if "depth" in extras else None
-    if "semantic" in extras:
-        return material_mask(scene.load_extra(i, "semantic"), depth), \
+def _material_region(scene: Scene, i: int, extras: list[str], depth: torch.Tensor | None,
+                     labels: torch.Tensor | None) -> tuple[torch.Tensor, str]:
+    """The pixels of view ``i`` that material metrics score; ``depth``/``labels``: its GT maps, read once by the
+    caller (None where the split has none)."""
+    if labels is not None:
+        return material_mask(labels, depth), \
             "metrics.material_mask: GT-labelled non-glass pixels" + (" with GT depth > 0" if depth is not None else "")
     if depth is not None:
         return torch.isfinite(depth) & (depth > 0), "GT depth > 0 (no GT labels)"
@@ -583,9 +585,11 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
         row["ssim"] = float(ssim(pred_disp, gt_stored)) if "ssim" not in unavailable else None
         row["flip"] = float(flip(pred_srgb.clamp(0, 1), gt_srgb.clamp(0, 1)))
         row["lpips"] = float(lpips(pred_srgb[None], gt_srgb[None], cfg.lpips_weights)[0]) if lpips_ok else None
+        gt_lab = scene.load_extra(i, "semantic") if "semantic" in extras else None  # GT maps read once per view
+        gt_depth = scene.load_extra(i, "depth") if "depth" in extras else None
         mask = None
         if any(k not in unavailable for k in ("albedo_mae", "roughness_rmse")):
-            mask, mat_rule = _material_region(scene, i, extras)
+            mask, mat_rule = _material_region(scene, i, extras, gt_depth, gt_lab)
         for key, extra, fn in (("albedo_mae", "albedo", albedo_mae), ("roughness_rmse", "roughness", roughness_rmse)):
             row[key] = None
             if key in unavailable:
@@ -615,14 +619,13 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
         if "semantic_logits" in out:
             sem = out["semantic_logits"].argmax(-1)
             sem = torch.where(out["opacity"] >= 0.5, sem, torch.full_like(sem, UNLABELLED))
-        gt_lab = scene.load_extra(i, "semantic") if "semantic" in extras else None  # read once: mIoU and geometry
         if "miou" not in unavailable:
             v_miou, _ = mean_iou(sem, gt_lab)
             row["miou"] = v_miou if math.isfinite(v_miou) else None
             sem_pred.append(sem.to(torch.uint8).reshape(-1))
             sem_gt.append(gt_lab.to(torch.uint8).reshape(-1))
-        if "depth" in extras:  # geometry by class (details.geometry): a strided subset of the GT-depth pixels
-            gt_z = scene.load_extra(i, "depth").reshape(-1)
+        if gt_depth is not None:  # geometry by class (details.geometry): a strided subset of the GT-depth pixels
+            gt_z = gt_depth.reshape(-1)
             keep = (gt_z > 0).nonzero().squeeze(1)
             keep = keep[::max(1, math.ceil(keep.numel() * len(views) / _ALIGNED_MAX_PIXELS))]
             lab = gt_lab.reshape(-1)[keep] if gt_lab is not None else None
@@ -818,12 +821,22 @@ def _weight_figures(run, cfg: EvalConfig, figures: EvalFigures) -> dict:
     else:
         from .edges import WeightMapConfig, weight_map
 
-        wmaps = []
+        from .scene import SceneError
+
+        wmaps, missing = [], []
         for i in idx:  # one view at a time: views may differ in size
-            labels = tr.load_extra(i, "semantic")[None] if tr.has_extra("semantic") else None
-            metal = tr.load_extra(i, "metal")[None] if tr.has_extra("metal") else None
-            wmaps.append(weight_map(tr.load_image(i)[None], labels, metal, WeightMapConfig()).weights[0].float().cpu())
+            maps = {}
+            for kind in ("semantic", "metal"):
+                try:
+                    maps[kind] = tr.load_extra(i, kind)[None] if tr.has_extra(kind) else None
+                except SceneError as e:  # a figure is no reason to lose the evaluation: W without that map
+                    maps[kind] = None
+                    missing.append(str(e))
+            wmaps.append(weight_map(tr.load_image(i)[None], maps["semantic"], maps["metal"],
+                                    WeightMapConfig()).weights[0].float().cpu())
         w_source = "recomputed (the run does not sample by W: DARS off)"
+        if missing:
+            w_source += f"; without {len(missing)} unreadable label/metal map(s) of the training views ({missing[0]})"
     stats: dict[str, list[float]] = {k: [] for k in ("mean", "min", "max", "fine_mean", "fine_min", "fine_max")}
     for k, i in enumerate(idx):
         c = training_sample_counts(run, i)

@@ -37,8 +37,10 @@ def eval_device(name: str) -> str:
 
     from .._checks import DarsError
 
+    from ..train.step import resolve_device
+
     if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
+        return str(resolve_device(name))
     try:
         dev = torch.device(name)
     except (RuntimeError, ValueError):
