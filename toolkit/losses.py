@@ -319,12 +319,11 @@ def planarity_loss(points: torch.Tensor, weights: torch.Tensor, scale: torch.Ten
         return points.new_zeros(())
     a = weights.detach().clamp_min(0.0)
     a_sum = a.sum(1, keepdim=True).clamp_min(1e-6)
+    c = (a[..., None] * points).sum(1, keepdim=True) / a_sum[..., None]
     with torch.no_grad():
-        c = (a[..., None] * points).sum(1, keepdim=True) / a_sum[..., None]
-        d = points - c
+        d = (points - c).detach()
         cov = torch.einsum("km,kmi,kmj->kij", a, d, d) / a_sum[..., None]
         cov = cov + 1e-9 * torch.eye(3, device=cov.device, dtype=cov.dtype)
         n = torch.linalg.eigh(cov.double())[1][..., 0].to(points.dtype)  # eigenvalues ascend: the plane's normal
-    c = (a[..., None] * points).sum(1, keepdim=True) / a_sum[..., None]
     dist = ((points - c) * n[:, None, :]).sum(-1).abs() / scale.detach().clamp_min(1e-6)[:, None]
     return (a * dist).sum() / a.sum().clamp_min(1e-6)

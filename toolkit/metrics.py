@@ -165,6 +165,16 @@ def _gaussian_kernel(window: int, sigma: float, dtype: torch.dtype, device: torc
     return (g / g.sum()).to(dtype=dtype, device=device)
 
 
+def gaussian_blur(img: torch.Tensor, sigma: float, truncate: float = 2.5) -> torch.Tensor:
+    """Separable Gaussian blur of a float [C, H, W] image, replicated borders, radius ``max(1, ceil(truncate·σ))``
+    (:func:`toolkit.regions.textureless_regions`; the segmenter keeps its own copy: metrics imports segment)."""
+    r = max(1, math.ceil(truncate * sigma))
+    c = img.shape[0]
+    k = _gaussian_kernel(2 * r + 1, sigma, img.dtype, img.device).view(1, 1, 1, -1).expand(c, 1, 1, -1)
+    x = F.conv2d(F.pad(img[None], (r, r, 0, 0), mode="replicate"), k, groups=c)
+    return F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.transpose(-1, -2), groups=c)[0]
+
+
 def ssim(
     pred: torch.Tensor,
     target: torch.Tensor,

@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from ._checks import ConfigError
+from .metrics import gaussian_blur, luminance
 
 __all__ = ["TexturelessConfig", "textureless_regions"]
 
@@ -52,13 +53,6 @@ class TexturelessConfig:
                               "0 < min_fraction < 1")
 
 
-def _gauss1d(sigma: float) -> torch.Tensor:
-    r = max(1, int(3 * sigma + 0.5))
-    x = torch.arange(-r, r + 1, dtype=torch.float32)
-    k = torch.exp(-x ** 2 / (2 * sigma ** 2))
-    return k / k.sum()
-
-
 def textureless_regions(img: torch.Tensor, cfg: TexturelessConfig = TexturelessConfig()) -> np.ndarray:
     """Label map of the photo's large textureless regions.
 
@@ -75,12 +69,10 @@ def textureless_regions(img: torch.Tensor, cfg: TexturelessConfig = TexturelessC
         raise ValueError(f"textureless_regions: expected a [3, H, W] image, got {tuple(img.shape)}")
     H, W = int(img.shape[1]), int(img.shape[2])
     s = max(1.0, min(H, W) / 128.0)  # pixels of this photo per pixel of a 128-pixel one
-    y = (0.2126 * img[0] + 0.7152 * img[1] + 0.0722 * img[2]).float()[None, None]
+    y = luminance(img[:3].float())[None]  # Rec. 709 weights on the values as given (not decoded): [1, H, W]
     if cfg.blur > 0:
-        k = _gauss1d(cfg.blur * s)
-        r = (len(k) - 1) // 2
-        y = F.conv2d(F.pad(y, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
-        y = F.conv2d(F.pad(y, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
+        y = gaussian_blur(y, cfg.blur * s, truncate=3.0)
+    y = y[None]
     gx = F.pad(y[..., :, 2:] - y[..., :, :-2], (1, 1, 0, 0), mode="replicate") / 2
     gy = F.pad(y[..., 2:, :] - y[..., :-2, :], (0, 0, 1, 1), mode="replicate") / 2
     g = (gx.square() + gy.square()).sqrt()[0, 0] * s  # per 128-pixel-equivalent pixel

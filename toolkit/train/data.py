@@ -118,6 +118,7 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         with_images: False: only what rendering needs (W maps, light); ``images`` is then an empty layout.
     """
     from ..edges import WeightMapConfig, normalise_weight_map, weight_map
+    from ..regions import textureless_regions
 
     V = len(scene)
     hs, ws = scene.cameras.height, scene.cameras.width
@@ -155,7 +156,7 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         albedo_gt = PackedViews.allocate(hs, ws, 3, dtype=torch.float16)
         priors["albedo_supervision"] = "ground truth"
     need_light = pri.light is None
-    want_planar = (cfg.losses.planar or 0.0) > 0 and with_images
+    want_planar = cfg.losses.planar > 0 and with_images
     planar_parts: list[tuple[int, np.ndarray]] = []
     gen = np.random.default_rng(cfg.seed)
     need_pixels = with_images or computed or need_light
@@ -167,8 +168,6 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         if with_images:
             images.write(i, img.permute(1, 2, 0))
         if want_planar:
-            from ..regions import textureless_regions
-
             reg = textureless_regions(img).reshape(-1)
             for k in range(1, int(reg.max()) + 1):
                 px = np.flatnonzero(reg == k)

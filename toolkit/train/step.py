@@ -15,8 +15,8 @@ from .._checks import DarsError
 from ..field import DarsField
 from ..io import linear_to_srgb, srgb_to_linear
 from ..losses import (compactness_loss, depth_normal_loss, light_residual_loss, material_loss, normal_consistency_loss,
-                      orientation_loss, psnr_loss, rgb_l1, semantic_loss, sparse_depth_loss, ssim_loss,
-                      planarity_loss)
+                      orientation_loss, planarity_loss, psnr_loss, rgb_l1, semantic_loss, sparse_depth_loss,
+                      ssim_loss)
 from ..pipeline import Background, DarsContext, RenderConfig, RenderInputs, render_rays
 from ..pixels import PackedViews
 from ..sampling import OccupancyGrid, build_ray_sampler, neighbour_views, select_rays
@@ -267,15 +267,20 @@ def _training_rays(state: TrainState, data: TrainData, views: torch.Tensor, rows
                          aabb=bounds, near=scene.near, far=scene.far)
 
 
+def _render_pixels(state: TrainState, data: TrainData, views: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor):
+    """Rays of training pixels and their deferred render (the extra rays of the geometry terms: they use weights,
+    depth and opacity, not the shaded colour). Returns (rays, outputs)."""
+    rays = _training_rays(state, data, views, rows, cols)
+    wray = data.weights.gather(data.weights.flat_index(views, rows, cols)).to(state.device)
+    return rays, _render(state, rays, wray, state.l_env.detach(), deferred=True)
+
+
 def _sparse_depth_term(state: TrainState, data: TrainData) -> torch.Tensor:
     """:func:`toolkit.losses.sparse_depth_loss` on ``SPARSE_DEPTH_RAYS`` rays drawn from ``data.sparse_depth``."""
     sd, dev = data.sparse_depth, state.device
     k = len(sd["depth"])
     pick = torch.randint(0, k, (min(k, SPARSE_DEPTH_RAYS),), generator=state.generator)
-    views, rows, cols = sd["views"][pick], sd["rows"][pick], sd["cols"][pick]
-    rays = _training_rays(state, data, views, rows, cols)
-    wray = data.weights.gather(data.weights.flat_index(views, rows, cols)).to(dev)
-    out = _render(state, rays, wray, state.l_env.detach(), deferred=True)  # only the weights are used
+    rays, out = _render_pixels(state, data, sd["views"][pick], sd["rows"][pick], sd["cols"][pick])
     ri = out.sample_ray_indices
     t = ((out.sample_points - rays.origins[ri]) * rays.directions[ri]).sum(-1)
     t_target = sd["depth"][pick].to(dev) / rays.z_scale.reshape(-1)  # camera-axis depth -> distance along the ray
@@ -291,17 +296,14 @@ PLANAR_RAYS = 32
 def _planar_term(state: TrainState, data: TrainData) -> torch.Tensor:
     """:func:`toolkit.losses.planarity_loss` on ``PLANAR_RAYS`` rays of each of ``PLANAR_REGIONS`` regions drawn
     from ``data.planar``."""
-    pl, dev = data.planar, state.device
+    pl = data.planar
     off = pl["offsets"]
     K = len(off) - 1
     reg = torch.randint(0, K, (PLANAR_REGIONS,), generator=state.generator)
     size = (off[reg + 1] - off[reg]).double()
     u = torch.rand(PLANAR_REGIONS, PLANAR_RAYS, generator=state.generator, dtype=torch.float64)
     pick = (off[reg][:, None] + (u * size[:, None]).long().clamp_max(size.long()[:, None] - 1)).reshape(-1)
-    views, rows, cols = pl["views"][pick], pl["rows"][pick], pl["cols"][pick]
-    rays = _training_rays(state, data, views, rows, cols)
-    wray = data.weights.gather(data.weights.flat_index(views, rows, cols)).to(dev)
-    out = _render(state, rays, wray, state.l_env.detach(), deferred=True)  # only depth and opacity are used
+    rays, out = _render_pixels(state, data, pl["views"][pick], pl["rows"][pick], pl["cols"][pick])
     t = out.depth / rays.z_scale.reshape(-1)  # camera-axis depth -> distance along the ray
     pts = (rays.origins + rays.directions * t[:, None]).reshape(PLANAR_REGIONS, PLANAR_RAYS, 3)
     a = out.opacity.reshape(PLANAR_REGIONS, PLANAR_RAYS)
@@ -398,7 +400,7 @@ def train_step(state: TrainState, data: TrainData) -> dict:
             terms["orientation"] = orientation_loss(out.normal, batch.rays.directions, out.opacity)
     if (lw.sparse_depth or 0.0) > 0 and data.sparse_depth is not None:
         terms["sparse_depth"] = _sparse_depth_term(state, data)
-    if (lw.planar or 0.0) > 0 and data.planar is not None:
+    if lw.planar > 0 and data.planar is not None:
         terms["planar"] = _planar_term(state, data)
     if cfg.semantics and batch.labels is not None and lw.semantic > 0:
         terms["semantic"] = semantic_loss(out.semantic_logits, batch.labels, batch.iw)
