@@ -447,6 +447,76 @@ def _mixed_sizes(src, dst):
     return dst
 
 
+def _on_transparent_background(src, dst):
+    """A copy of the tiny scene as RGBA photos of the sphere and floor on a transparent background (alpha 0 where
+    the labels say background), like NeRF-synthetic renders."""
+    import shutil
+
+    import numpy as np
+    from PIL import Image
+
+    shutil.copytree(src, dst)
+    for split in ("train", "test"):
+        for fm in json.loads((dst / f"transforms_{split}.json").read_text())["frames"]:
+            rgb = np.asarray(Image.open(dst / fm["file_path"]).convert("RGB"))
+            alpha = np.where(np.asarray(Image.open(dst / fm["semantic_path"])) == 255, 0, 255).astype(np.uint8)
+            Image.fromarray(np.dstack([rgb, alpha]), "RGBA").save(dst / fm["file_path"])
+    return dst
+
+
+def test_an_object_grid_prunes_thin_fog_that_a_room_grid_keeps(tiny, tmp_path):
+    """An object on a transparent background (bounded box) counts a cell empty against Instant-NGP's fine step
+    (box diagonal / 1024); a room (contracted) against its coarse sample spacing. Around a dense ball, a fog whose
+    coarse-sample opacity is 4 % and whose fine-step opacity is 0.1 % is empty for the object grid (only the ball's
+    cells stay) and occupied for the room grid."""
+    from toolkit.train import init_state, prepare_data, resolve_config
+    from toolkit.train.step import OBJECT_OCCUPANCY_STEPS
+
+    grids = {}
+    for name, root in (("object", _on_transparent_background(tiny, tmp_path / "rgba")), ("room", tiny)):
+        cfg, scene = resolve_config(_small(steps=1), load_scene(root, "train"))
+        assert cfg.scene_type == ("object" if name == "object" else "unbounded")
+        st = init_state(cfg, prepare_data(scene, cfg, log=lambda m: None, priors_root=tmp_path / "none"))
+        extent = float((scene.aabb[1] - scene.aabb[0]).norm())
+        sigma = 0.04 / (extent / cfg.sampler.n_coarse)
+        st.occupancy.update(lambda p: torch.where(p.norm(dim=-1) < 0.4, 1e3, sigma), all_cells=True)
+        grids[name] = (st.occupancy, extent, cfg.sampler.n_coarse)
+    ball = torch.zeros(3, 1)
+    occ, extent, _ = grids["object"]
+    assert occ.step == pytest.approx(extent / OBJECT_OCCUPANCY_STEPS)
+    assert 0.0 < occ.occupancy_fraction() < 0.1 and bool(occ.occupied(ball.T)[0])
+    occ, extent, n = grids["room"]
+    assert occ.step == pytest.approx(extent / n) and occ.occupancy_fraction() == 1.0
+
+
+def test_an_object_on_a_known_background_starts_from_its_own_ambient(tiny, tmp_path, capsys):
+    """On RGBA photos with transparency the light network's estimate (trained on whole photos of rooms; here most
+    pixels are the compositing colour) is computed but not used: the light starts from the object pixels' grey
+    ambient, and config.json says why. Opaque photos keep the network's estimate
+    (test_cli_train_computes_its_priors_from_the_photos)."""
+    from toolkit.cli import main
+    from toolkit.io import srgb_to_linear
+    from toolkit.train import grey_ambient_sh
+
+    scene_dir = _on_transparent_background(tiny, tmp_path / "rgba")
+    run = tmp_path / "run"
+    assert main(["train", str(scene_dir), "--out", str(run), "--steps", "1", "--batch-rays", "256", "--quiet"]) == 0
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["config"]["scene_type"] == "object" and (run / "priors" / "light" / "light.json").is_file()
+    assert cfg["l_env_source"].startswith("grey ambient of the object pixels (light network (")
+    assert cfg["priors"]["light"] == cfg["l_env_source"]
+    scene = load_scene(scene_dir, "train")
+    tot, n = 0.0, 0
+    for i in range(len(scene)):
+        rgba = scene.load_image(i, with_alpha=True)
+        obj = rgba[3] > 0.5
+        tot, n = tot + float(srgb_to_linear(rgba[:3])[:, obj].sum(dtype=torch.float64)), n + 3 * int(obj.sum())
+    want = grey_ambient_sh(tot / n)
+    got = torch.tensor(cfg["l_env_init"])
+    assert torch.allclose(got, want.to(got), rtol=0.02, atol=1e-4), (got[0], want[0])
+    capsys.readouterr()
+
+
 @pytest.mark.parametrize("normalise", ["quantile", "none"])
 def test_prepare_data_stores_w_once_at_8_bits(tiny, tmp_path, normalise):
     """W computed by the trainer is normalised at full precision and stored as uint8 (1 byte a pixel): every view

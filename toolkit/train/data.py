@@ -38,7 +38,7 @@ from ..io import srgb_to_linear
 from ..pixels import PackedViews
 from ..priors import priors_path, read_priors
 from ..scene import Scene
-from .config import TrainConfig
+from .config import TrainConfig, photos_have_transparency
 
 __all__ = ["TrainData", "prepare_data", "grey_ambient_sh", "PLANAR_PIXELS_PER_REGION"]
 
@@ -155,7 +155,12 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
     if cfg.albedo_supervision and scene.has_extra("albedo") and with_images:
         albedo_gt = PackedViews.allocate(hs, ws, 3, dtype=torch.float16)
         priors["albedo_supervision"] = "ground truth"
-    need_light = pri.light is None
+    # The light network reads whole photos of lit rooms. On RGBA photos of an object on a known background most
+    # pixels are that compositing colour, not light, and its estimate is out of its domain (NeRF Lego: DC 5.8
+    # against the object pixels' grey ambient 1.9, and a white fog that fitted the too-bright shading, README
+    # "NeRF Lego"). There the light starts from the object pixels' grey ambient, as without a light prior.
+    known_bg = pri.light is not None and photos_have_transparency(scene)
+    need_light = pri.light is None or known_bg
     want_planar = cfg.losses.planar > 0 and with_images
     planar_parts: list[tuple[int, np.ndarray]] = []
     gen = np.random.default_rng(cfg.seed)
@@ -192,7 +197,7 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         priors["weights"] = "computed (G" + ("+E" if w_labels is not None else "") + ("+M" if metal is not None else "") + ")"
     else:
         priors["weights"] = pri.weights_source
-    if pri.light is not None:
+    if pri.light is not None and not known_bg:
         l_env, l_src = pri.light, pri.light_source
         if cfg.light_init == "ambient":
             l_env = l_env.clone()
@@ -201,6 +206,9 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
     else:
         mean = lin_sum / lin_n if lin_n else all_sum / max(all_n, 1)
         l_env, l_src = grey_ambient_sh(mean), "grey ambient"
+        if known_bg:
+            l_src += (f" of the object pixels ({pri.light_source} not used: the photos are RGBA on a known "
+                      "background, outside the light network's domain)")
     priors["light"] = l_src
     if pri.colour is not None:
         priors["colour"] = pri.colour_source
