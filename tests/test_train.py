@@ -222,6 +222,7 @@ def test_cli_train_computes_its_priors_from_the_photos(tmp_path, capsys):
     rec = json.loads((run / "priors" / "priors.json").read_text())
     assert rec["ground_truth_inputs"] == "none" and rec["segment"]["model"].endswith("segmenter_small.pt")
     assert rec["light"]["model"].endswith(".pt") and len(rec["light"]["coeffs"]) == 9
+    assert "out_of_domain" not in json.loads((run / "priors" / "light" / "light.json").read_text())
     assert (run / "priors" / "segment" / "train__r_000_metal.png").is_file()
     man = json.loads((run / "dars_manifest.json").read_text())
     assert "priors/" in man["files"] and "checkpoint.pt" in man["files"]
@@ -505,6 +506,8 @@ def test_an_object_on_a_known_background_starts_from_its_own_ambient(tiny, tmp_p
     assert cfg["config"]["scene_type"] == "object" and (run / "priors" / "light" / "light.json").is_file()
     assert cfg["l_env_source"].startswith("grey ambient of the object pixels (light network (")
     assert cfg["priors"]["light"] == cfg["l_env_source"]
+    light = json.loads((run / "priors" / "light" / "light.json").read_text())
+    assert "out of its domain" in light["out_of_domain"] and "out of its domain" in capsys.readouterr().err
     scene = load_scene(scene_dir, "train")
     tot, n = 0.0, 0
     for i in range(len(scene)):

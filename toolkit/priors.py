@@ -408,9 +408,17 @@ def compute_priors(scene: "Scene", root: str | os.PathLike, segmenter: str | os.
 
 
 # ============================================================================ light (stage 4)
+OUT_OF_DOMAIN_RGBA = ("the photos are RGBA with transparency (an object on a known background): the light network "
+                      "was trained on whole photos of rooms and reads the background colour as light, so this "
+                      "estimate is out of its domain; dars train does not use it and starts from the grey ambient "
+                      "of the object pixels")
+"""Why a light estimate of photos with transparency is flagged (``light.json``'s ``out_of_domain``)."""
+
+
 def priors_light(scene, out_dir=None, weights: str | None = None, reduce: str = "mean", batch_size: int = 32,
                  force: bool = False) -> dict:
     """Estimate the scene's SH lighting with the light network and write ``light.json``; returns its content.
+    On RGBA photos with transparency the estimate is flagged ``out_of_domain`` (:data:`OUT_OF_DOMAIN_RGBA`).
 
     Args:
         scene: a loaded :class:`toolkit.scene.Scene` (sRGB photos; linear HDR scenes are clipped to [0, 1] and
@@ -426,6 +434,7 @@ def priors_light(scene, out_dir=None, weights: str | None = None, reduce: str = 
     """
     from .lightnet import DEFAULT_WEIGHTS, aggregate_sh, load_lightnet, mean_colour_sh, predict_sh
     from .metrics import env_light_l2
+    from .scene import photos_have_transparency
 
     if reduce not in ("mean", "median"):
         raise ConfigError(f"--reduce {reduce!r}: choose 'mean' or 'median'")
@@ -462,6 +471,9 @@ def priors_light(scene, out_dir=None, weights: str | None = None, reduce: str = 
         "note": "world-frame bands 1-2 are only meaningful for rooms like the one the network was trained on",
         "evaluation": None,
     }
+    if photos_have_transparency(scene):
+        info["out_of_domain"] = OUT_OF_DOMAIN_RGBA
+        print(f"[dars] light: {OUT_OF_DOMAIN_RGBA}", file=sys.stderr)
     if scene.sh is not None:
         gt = scene.sh.float()
         ev = {"env_light_l2": float(env_light_l2(coeffs, gt)),

@@ -46,6 +46,7 @@ __all__ = [
     "Cameras",
     "Frame",
     "Scene",
+    "photos_have_transparency",
     "RayBundle",
     "SEMANTIC_CLASSES",
     "UNLABELLED",
@@ -985,3 +986,18 @@ def scene_info(path: str | Path) -> dict:
     info["envmap"] = str(first.envmap_path) if first.envmap_path else None
     info["upright"] = first.meta.get("upright")
     return info
+
+
+def photos_have_transparency(scene: "Scene", n: int = 3) -> bool:
+    """Whether the photos are RGBA with real transparency (alpha < 1 somewhere in the first, middle or last
+    photo): an object rendered on a known background. An alpha channel that is 255 everywhere does not count."""
+    f0 = scene.frames[0]
+    if f0.image_path is None or f0.image_path.suffix.lower() != ".png":
+        return False
+    from PIL import Image
+
+    with Image.open(f0.image_path) as im:
+        if im.mode not in ("RGBA", "LA"):
+            return False
+    idx = sorted({0, len(scene) // 2, len(scene) - 1})[:n]
+    return any(bool((scene.load_image(i, with_alpha=True)[3] < 0.999).any()) for i in idx)

@@ -19,7 +19,7 @@ from ..encoding import HashGridConfig
 from ..field import FieldConfig
 from ..losses import LossWeights
 from ..sampling import SamplerConfig
-from ..scene import Scene
+from ..scene import Scene, photos_have_transparency
 
 __all__ = ["TrainConfig", "PRESETS", "make_config", "resolve_config", "resolve_scene_box", "SHELL_FADE", "ROOM_LOSSES",
            "photos_have_transparency"]
@@ -240,21 +240,6 @@ background gets 0 for each (the opacity loss would fill its background; the othe
 
 SHELL_FADE = 0.1
 """Fraction of the run over which the (legacy, bounded-only) room prior's layer fades in, after stage (a)."""
-
-
-def photos_have_transparency(scene: Scene, n: int = 3) -> bool:
-    """Whether the photos are RGBA with real transparency (alpha < 1 somewhere in the first, middle or last
-    photo): an object rendered on a known background. An alpha channel that is 255 everywhere does not count."""
-    f0 = scene.frames[0]
-    if f0.image_path is None or f0.image_path.suffix.lower() != ".png":
-        return False
-    from PIL import Image
-
-    with Image.open(f0.image_path) as im:
-        if im.mode not in ("RGBA", "LA"):
-            return False
-    idx = sorted({0, len(scene) // 2, len(scene) - 1})[:n]
-    return any(bool((scene.load_image(i, with_alpha=True)[3] < 0.999).any()) for i in idx)
 
 
 def resolve_scene_box(cfg: TrainConfig, scene: Scene, log=None) -> tuple[Scene, TrainConfig]:
