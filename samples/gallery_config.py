@@ -82,7 +82,7 @@ class Painting:
     """(u, z) of the canvas centre on its wall."""
     size: Vec2 = (1.1, 0.8)
     """Canvas width and height, metres."""
-    canvas: Material = Material(roughness=0.8, texture="sample_painting", texture_args=(0,))
+    canvas: Material = Material(roughness=0.6, texture="sample_painting", texture_args=(0,))
     frame: Literal["gilt", "wood", "glass"] = "gilt"
     """``gilt``: metallic frame; ``wood``: dielectric frame; ``glass``: a thin frame and a glass pane in front."""
     frame_material: Material = Material(base_color=(1.0, 0.71, 0.29), roughness=0.3, metallic=1.0)

@@ -3,7 +3,7 @@
 Two kinds of scene share one renderer:
 
 * ``--preset sample`` (:meth:`GalleryConfig.sample`, the default): the bundled ``samples/gallery`` — a back wall and
-  a planked floor (an open corner), a procedural painting (roughness 0.8) in a gold frame, a stone pedestal with a
+  a planked floor (an open corner), a procedural painting (roughness 0.6) in a gold frame, a stone pedestal with a
   twisted metal sculpture in a glass case, lit only by an HDR environment. ``make sample`` re-renders it with the
   ``sample`` profile (80 + 20 views, 400 spp, the hand-set ``aabb``); its ``"sh"`` is the environment's SH.
 * ``--seed N`` (:func:`procedural.random_gallery`): a closed gallery room drawn from the seed — size, walls, floor,

@@ -268,6 +268,8 @@ def test_sample_depth_normals_and_materials_are_consistent():
     canvas_y = scene["painting_plane"]["point"][1]
     corners = np.asarray(scene["painting_corners"])
     wall_y = scene["wall_plane"]["point"][1]
+    painting_roughness = scene["paintings"][0]["roughness"]  # not L_mat's painting target (0.8): no circular score
+    assert abs(painting_roughness - 0.8) > 0.1
     rows, cols = np.mgrid[0:size, 0:size]
     d_cam = np.stack([(cols + 0.5 - c) / f, -(rows + 0.5 - c) / f, -np.ones((size, size))], -1)
     for frame in meta["frames"]:
@@ -289,10 +291,11 @@ def test_sample_depth_normals_and_materials_are_consistent():
                 assert np.abs(normal[inner] - expected).max() < 0.02, f"{frame['file_path']}: normals of label {label}"
         albedo = read_image(SAMPLE / frame["albedo_path"])
         wall = _interior(sem == 4)
-        np.testing.assert_allclose(albedo[wall], np.broadcast_to(scene["materials"]["wall"]["base_color"], albedo[wall].shape), atol=1.0 / 255)
+        wall_colour = scene["config"]["room"]["wall_materials"][0]["base_color"]
+        np.testing.assert_allclose(albedo[wall], np.broadcast_to(wall_colour, albedo[wall].shape), atol=1.0 / 255)
         rough = read_image(SAMPLE / frame["roughness_path"])[..., 0]
         metallic = read_image(SAMPLE / frame["metallic_path"])[..., 0]
-        np.testing.assert_allclose(rough[_interior(paint)], 0.8, atol=1.0 / 255)
+        np.testing.assert_allclose(rough[_interior(paint)], painting_roughness, atol=1.0 / 255)
         np.testing.assert_allclose(metallic[_interior(paint)], 0.0, atol=1.0 / 255)
         sculpt = _interior(sem == 6)
         np.testing.assert_allclose(metallic[sculpt], 1.0, atol=1.0 / 255)
