@@ -78,6 +78,12 @@ def test_every_metric_computed_when_data_supports_it(full_eval, run_dir):
     assert 0.0 <= mat["albedo_mae_aligned"] <= 1.0 and len(mat["albedo_scale"]) == 3
     assert all(s > 0 for s in mat["albedo_scale"])
     assert mat["metallic_mae"] is None or 0.0 <= mat["metallic_mae"] <= 1.0
+    # roughness per GT class: the classes pool back to the overall RMSE over the pixels they cover
+    by, n_by = mat["roughness_rmse_by_class"], mat["roughness_pixels_by_class"]
+    assert by and set(by) == set(n_by) and len(by) >= 2, by
+    assert sum(n_by.values()) == doc["details"]["pixels"]["roughness_rmse"]
+    pooled = math.sqrt(sum(by[k] ** 2 * n_by[k] for k in by) / sum(n_by.values()))
+    assert pooled == pytest.approx(doc["roughness_rmse"], rel=1e-5)
 
 
 def test_view_consistency_patch_matches_independent_computation(full_eval, scene_gt):
@@ -295,7 +301,8 @@ def test_geometry_by_class_matches_a_direct_render(full_eval, run_dir):
     from toolkit.report import write_eval_report
 
     write_eval_report(full_eval, run_dir / "eval_geo")
-    assert "Rendered depth against the ground truth" in (run_dir / "eval_geo" / "report.md").read_text()
+    report = (run_dir / "eval_geo" / "report.md").read_text()
+    assert "Rendered depth against the ground truth" in report and "Roughness RMSE per ground-truth class" in report
 
 
 def test_unreadable_training_labels_cost_the_w_figure_not_the_evaluation(scene_gt, tmp_path, monkeypatch):

@@ -565,6 +565,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     pooled: dict[str, list[tuple[float, int]]] = {"albedo_mae": [], "roughness_rmse": [], "normal_mae": []}
     aligned_px: list[tuple[torch.Tensor, torch.Tensor]] = []
     pooled_metallic: list[tuple[float, int]] = []
+    rough_by_class: dict[str, list[tuple[float, int]]] = {}  # per GT class: (RMSE, pixels) per view
     geo_px: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = []  # |dz|, opacity, GT class (strided)
     sem_pred, sem_gt = [], []
     mat_rule = ""
@@ -599,6 +600,11 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
                 pred = out["albedo"].permute(2, 0, 1) if extra == "albedo" else out["roughness"]
                 gt_map = scene.load_extra(i, extra)
                 row[key] = float(fn(pred, gt_map, mask))
+                if extra == "roughness" and gt_lab is not None:  # per GT class (details.materials): painting apart
+                    for c, name in enumerate(SEMANTIC_CLASSES):
+                        m_c = mask & (gt_lab == c)
+                        if bool(m_c.any()):
+                            rough_by_class.setdefault(name, []).append((float(fn(pred, gt_map, m_c)), int(m_c.sum())))
                 if extra == "albedo":  # a strided subset of the masked pixels for the scale-aligned MAE (details)
                     stride = max(1, math.ceil(n_px * len(views) / _ALIGNED_MAX_PIXELS))
                     aligned_px.append((pred[:, mask][:, ::stride], gt_map[:, mask][:, ::stride]))
@@ -670,7 +676,9 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
         pixels[key] = sum(n for _, n in pooled[key])
         if metrics[key] is None:
             unavailable[key] = "the mask selects no pixel in any evaluated view"
-    material_extra = {"albedo_mae_aligned": None, "albedo_scale": None, "metallic_mae": _pool(pooled_metallic, "mean")}
+    material_extra = {"albedo_mae_aligned": None, "albedo_scale": None, "metallic_mae": _pool(pooled_metallic, "mean"),
+                      "roughness_rmse_by_class": {k: _pool(v, "rmse") for k, v in rough_by_class.items()} or None,
+                      "roughness_pixels_by_class": {k: sum(n for _, n in v) for k, v in rough_by_class.items()} or None}
     if metrics.get("albedo_mae") is not None and aligned_px:
         p_al, g_al = (torch.cat(t, 1)[:, None] for t in zip(*aligned_px))
         v_al, s_al = albedo_mae_aligned(p_al, g_al, torch.ones(p_al.shape[1:], dtype=torch.bool))
@@ -721,6 +729,9 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
             "albedo_mae_aligned": "albedo MAE after a per-channel least-squares scale to the ground truth "
                                   "(metrics.albedo_mae_aligned; albedo_scale > 1: the albedo is too dark), same mask",
             "metallic_mae": "mean |metallic - GT metallic| on the material mask",
+            "roughness_rmse_by_class": "roughness RMSE on the material mask split by ground-truth class (painting "
+                                       "apart: L_mat pulls painting roughness to 0.8, so that class is the one to "
+                                       "read against the scene's true painting roughness)",
             "semantics": "argmax of rendered logits; 255 where rendered opacity < 0.5",
             "geometry": "on pixels with a ground-truth depth: median |rendered depth - GT depth| (metres, along the "
                         "camera axis) and mean rendered opacity, over all of them and per ground-truth class; "

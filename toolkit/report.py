@@ -444,6 +444,10 @@ def _eval_markdown(doc: dict, written: dict[str, Path]) -> str:
               f"{_fmt(mat.get('albedo_mae_aligned'), '{:.4f}')} (scale {mat.get('albedo_scale')}: albedo and light are "
               "known only up to a common scale from photos; above 1 the albedo is too dark), metallic MAE "
               f"{_fmt(mat.get('metallic_mae'), '{:.4f}')}.", ""]
+    if mat.get("roughness_rmse_by_class"):
+        L += ["Roughness RMSE per ground-truth class (L_mat pulls painting roughness to 0.8; the painting figure is "
+              "the one that shows whether the field learned the scene's own): " + ", ".join(
+                  f"{k} {_fmt(v, '{:.3f}')}" for k, v in mat["roughness_rmse_by_class"].items()), ""]
     if det.get("miou_per_class"):
         L += ["Per-class IoU: " + ", ".join(f"{k} {_fmt(v, '{:.3f}')}" for k, v in det["miou_per_class"].items()), ""]
     geo = det.get("geometry")
