@@ -19,6 +19,7 @@ from toolkit.train import FieldCallables
     ({"simplify": "slow"}, "--simplify 'slow'"),
     ({"level_quantile": 1.5}, "--level-quantile 1.5"),
     ({"min_component": -0.1}, "--min-component -0.1"),
+    ({"min_seen": 1.5}, "--min-seen 1.5"),
     ({"depth_samples": 0}, "--depth-samples 0"),
     ({"supersample": 3}, "--supersample 3"),
     ({"ao_samples": -1}, "--ao-samples -1"),

@@ -300,6 +300,52 @@ def test_remove_floaters():
         remove_floaters(mesh, min_fraction=2.0)
 
 
+def test_a_small_component_the_photos_see_is_not_a_floater():
+    """A room's painting whose wall stayed fog is a separate component of a few percent of the floor's faces:
+    size alone drops it, the training rays' surface points keep it; points elsewhere, or too few, do not."""
+    mesh = two_spheres()
+    small = mesh.labels[mesh.faces[:, 0]] == 1
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(400, 3))
+    on_small = np.array([0.8, 0.8, 0.8]) + 0.1 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    on_big = 0.5 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    seen = np.concatenate([on_big, on_small[:40]])  # 40 of 440 points (9 %) lie on the small sphere
+    assert small.sum() < 0.05 * (~small).sum()  # the size test alone drops it
+    kept = remove_floaters(mesh, seen_points=seen, radius=0.05)
+    assert kept.num_faces == mesh.num_faces
+    assert remove_floaters(mesh, seen_points=seen, radius=0.05, min_seen=0.2).num_faces == int((~small).sum())
+    assert remove_floaters(mesh, seen_points=on_big, radius=0.05).num_faces == int((~small).sum())  # unseen
+    far = on_small[:40] + np.array([0.0, 0.0, 0.5])  # seen points off the sphere by more than the radius
+    assert remove_floaters(mesh, seen_points=np.concatenate([on_big, far]), radius=0.05).num_faces == int((~small).sum())
+    with pytest.raises(ConfigError, match="min_seen"):
+        remove_floaters(mesh, seen_points=seen, radius=0.05, min_seen=1.5)
+
+
+def test_build_mesh_keeps_a_small_object_the_cameras_look_at():
+    """End to end through toolkit.asset.build_mesh: a small sphere (< 5 % of the big one's faces) that four of
+    sixteen cameras see from close is kept by default and dropped when size alone decides (min_seen 1)."""
+    from toolkit.asset import AssetConfig, build_mesh
+    from toolkit.train import FieldCallables
+
+    big, small_c = sphere_density(0.5), (0.0, 0.0, 0.8)
+    small = sphere_density(0.08, centre=small_c)
+    density = lambda p: torch.maximum(big(p), small(p))  # noqa: E731
+    close = [look_at(np.array(small_c) + 0.4 * np.array(v), small_c) for v in ((1, 0, 0.3), (0, 1, 0.3), (-1, 0, 0.3), (0, -1, 0.3))]
+    ring = ring_cameras(12, dist=2.0)
+    cams = make_cameras(list(ring.c2w.numpy()) + close)
+    def material(p, normals=None):
+        n = p.shape[0]
+        return {"albedo": torch.full((n, 3), 0.5), "roughness": torch.full((n,), 0.5), "metallic": torch.zeros(n),
+                "normal": torch.nn.functional.normalize(p, dim=-1), "semantic": torch.zeros(n, dtype=torch.long)}
+
+    f = FieldCallables(density, material, torch.tensor([[-1.0] * 3, [1.0] * 3]), None, cams)
+    on_small = lambda m: int((np.linalg.norm(m.vertices - np.array(small_c), axis=1) < 0.15).sum())  # noqa: E731
+    kept, st = build_mesh(f, AssetConfig(resolution=48, faces=0, level=20.0))
+    dropped, _ = build_mesh(f, AssetConfig(resolution=48, faces=0, level=20.0, min_seen=1.0))
+    assert on_small(kept) > 0 and on_small(dropped) == 0
+    assert st["floaters"]["seen_points"] > 500 and st["floaters"]["min_seen"] == 0.005
+
+
 def test_remove_unseen_faces():
     mesh = extract_mesh(sphere_density(0.5, beta=0.02), BOX, MeshConfig(resolution=40, progress=False))
     cams = make_cameras([look_at([0.0, -3.0, 0.0], [0.0, 0.0, 0.0])], size=64, focal=80.0)

@@ -31,6 +31,11 @@ __all__ = ["AssetConfig", "Asset", "build_asset", "build_mesh", "bake_mesh", "as
            "write_uv_obj"]
 
 
+SEEN_RADIUS_VOXELS = 3.0
+"""A training ray's half-transmittance point counts for the mesh component whose nearest vertex lies within this
+many marching-cubes voxels (the iso-surface sits at or before the crossing, a sample spacing or two away)."""
+
+
 @dataclass(frozen=True)
 class AssetConfig:
     """Options of the mesh and bake stages (the ``dars mesh`` / ``bake`` / ``export-asset`` options, same defaults).
@@ -52,7 +57,11 @@ class AssetConfig:
     simplify: Literal["fast", "quality"] = "fast"
     """fast-simplification, or pymeshlab quadric edge collapse."""
     min_component: float = 0.05
-    """Drop connected components smaller than this fraction of the largest (0: keep all)."""
+    """Drop connected components smaller than this fraction of the largest (0: keep all), unless the photos see
+    them (``min_seen``)."""
+    min_seen: float = 0.005
+    """Keep a component whatever its size when at least this fraction of the training rays' half-transmittance
+    points (what the photos see) lies on it (1: size alone decides)."""
     keep_unseen: bool = False
     """Keep faces that no training camera sees."""
     depth_samples: int = 256
@@ -81,6 +90,8 @@ class AssetConfig:
             raise ConfigError(f"--simplify {self.simplify!r}: choose fast or quality")
         if not 0.0 <= self.min_component <= 1.0:
             raise ConfigError(f"--min-component {self.min_component} must be in [0, 1]")
+        if not 0.0 <= self.min_seen <= 1.0:
+            raise ConfigError(f"--min-seen {self.min_seen} must be in [0, 1]")
         if self.depth_samples < 1:
             raise ConfigError(f"--depth-samples {self.depth_samples} must be ≥ 1")
         if not 16 <= self.texture <= 16384:
@@ -145,17 +156,21 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
         DarsError: the field gives an empty mesh, or ``tsdf`` without training cameras.
     """
     from .mesh import (DepthRenderConfig, MeshConfig, TsdfConfig, extract_mesh, fuse_tsdf, grid_spec, level_from_rays,
-                       query_vertex_attributes, remove_floaters, remove_unseen_faces, render_depth, simplify_mesh,
-                       surface_region)
+                       query_vertex_attributes, remove_floaters, remove_unseen_faces, render_depth,
+                       seen_surface_points, simplify_mesh, surface_region)
 
     density_fn, material_fn, aabb, _, cameras = field[:5]
     space = field.space if isinstance(field, FieldCallables) else None
     stats: dict = {"method": cfg.method, "resolution": cfg.resolution}
     t0 = time.perf_counter()
     box = np.asarray(aabb.detach().cpu().numpy() if hasattr(aabb, "detach") else aabb, dtype=np.float64)
+    seen = None  # where the training rays reach half transmittance: what the photos see (floater test)
     if space is not None and space.contraction and cameras is not None:
         # unbounded field: mesh where the photos' rays find surfaces (walls, floor, objects), not the sky
-        box, stats["region"] = surface_region(density_fn, cameras, space, device=cfg.device)
+        seen = seen_surface_points(density_fn, cameras, space, device=cfg.device)
+        box, stats["region"] = surface_region(density_fn, cameras, space, device=cfg.device, points=seen)
+    elif cameras is not None and cfg.min_component > 0:
+        seen = seen_surface_points(density_fn, cameras, box, device=cfg.device)
     if cfg.method == "mc":
         level = cfg.level
         if level is None and cfg.level_quantile > 0 and cameras is not None:
@@ -176,7 +191,12 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
         raise DarsError("the field produced an empty mesh (density never reaches the iso-level inside the box); "
                         "try a lower --level or check the RUN")
     if cfg.min_component > 0:
-        mesh = remove_floaters(mesh, min_fraction=cfg.min_component)
+        faces_before = mesh.num_faces
+        voxel = grid_spec(box, cfg.resolution)[0]
+        mesh = remove_floaters(mesh, min_fraction=cfg.min_component, seen_points=seen, radius=SEEN_RADIUS_VOXELS * voxel,
+                               min_seen=cfg.min_seen)
+        stats["floaters"] = {"faces_removed": faces_before - mesh.num_faces, "seen_points": 0 if seen is None else len(seen),
+                             "radius_m": SEEN_RADIUS_VOXELS * voxel, "min_seen": cfg.min_seen}
     if cameras is not None and not cfg.keep_unseen:
         mesh = remove_unseen_faces(mesh, cameras)
     stats["faces_cleaned"] = mesh.num_faces

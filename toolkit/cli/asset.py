@@ -41,7 +41,11 @@ def add_mesh_options(q: argparse.ArgumentParser) -> None:
     q.add_argument("--simplify", choices=("fast", "quality"), default="fast",
                    help="fast-simplification (default) or pymeshlab quadric edge collapse")
     q.add_argument("--min-component", type=number(float, min=0, max=1), default=0.05,
-                   help="drop connected components smaller than this fraction of the largest (0 = keep all)")
+                   help="drop connected components smaller than this fraction of the largest (0 = keep all), "
+                        "unless the photos see them (--min-seen)")
+    q.add_argument("--min-seen", type=number(float, min=0, max=1), default=0.005,
+                   help="keep a component whatever its size when at least this fraction of the training rays' "
+                        "half-transmittance points lies on it (1 = size alone decides)")
     q.add_argument("--keep-unseen", action="store_true", help="keep faces that no training camera sees")
     q.add_argument("--depth-samples", type=POSITIVE, default=256, help="samples per ray for --method tsdf depth maps")
     q.add_argument("--device", default="cpu", help="device the field is queried on")
@@ -92,8 +96,8 @@ def asset_config(args: argparse.Namespace):
     """
     from ..asset import AssetConfig
 
-    names = ("method", "resolution", "level", "level_quantile", "faces", "simplify", "min_component", "keep_unseen",
-             "depth_samples", "texture", "supersample", "ao_samples", "device")
+    names = ("method", "resolution", "level", "level_quantile", "faces", "simplify", "min_component", "min_seen",
+             "keep_unseen", "depth_samples", "texture", "supersample", "ao_samples", "device")
     return AssetConfig(**{k: getattr(args, k) for k in names if hasattr(args, k)})
 
 

@@ -38,7 +38,7 @@ capped at the opacity rule, so sharp fields keep σ* and soft objects are not lo
 from .clean import face_components, remove_floaters, remove_unseen_faces
 from .distance import MeshDistance, mesh_distance, sample_surface
 from .extract import (MeshConfig, extract_mesh, grid_spec, level_from_rays, opacity_level, query_vertex_attributes,
-                      surface_region)
+                      seen_surface_points, surface_region)
 from .ply import load_mesh, save_mesh
 from .simplify import SimplifyConfig, SimplifyReport, simplify_mesh
 from .tsdf import DepthRenderConfig, TsdfConfig, fuse_tsdf, opengl_c2w_to_opencv_w2c, render_depth
@@ -56,6 +56,7 @@ __all__ = [
     "MeshDistance",
     "opacity_level",
     "level_from_rays",
+    "seen_surface_points",
     "surface_region",
     "grid_spec",
     "extract_mesh",

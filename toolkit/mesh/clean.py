@@ -32,22 +32,33 @@ def face_components(mesh: Mesh) -> np.ndarray:
     return comp[f[:, 0]].astype(np.int64)
 
 
-def remove_floaters(mesh: Mesh, min_faces: int | None = None, min_fraction: float | None = None) -> Mesh:
-    """Drop connected components with fewer faces than a threshold.
+def remove_floaters(mesh: Mesh, min_faces: int | None = None, min_fraction: float | None = None,
+                    seen_points: np.ndarray | None = None, radius: float = 0.0, min_seen: float = 0.005) -> Mesh:
+    """Drop connected components with fewer faces than a threshold, unless the photos see them.
+
+    Size alone misjudges a room: its floor and walls are one component of hundreds of thousands of faces, and a
+    painting the field renders opaque but whose wall it left as fog is a separate component of a few percent of
+    that. With ``seen_points`` (where training rays reach half transmittance,
+    :func:`toolkit.mesh.seen_surface_points`) a component is also kept when at least ``min_seen`` of those points
+    lie within ``radius`` of its vertices: a floater is what few rays see, not what is small.
 
     Args:
         mesh: input mesh.
         min_faces: keep components with at least this many faces.
         min_fraction: keep components with at least this fraction of the largest component's faces.
             With neither given, ``min_fraction=0.05``. With both, a component must pass both.
+        seen_points: float [M, 3] surface points the photos see (world metres), or None (size test only).
+        radius: metres; a seen point belongs to the component of its nearest vertex within this distance.
+        min_seen: fraction of the M points a component must hold to be kept whatever its size.
 
     Returns:
-        :class:`Mesh` without the small components (unreferenced vertices dropped).
+        :class:`Mesh` without the small, unseen components (unreferenced vertices dropped).
     """
     if mesh.num_faces == 0:
         return mesh
     if min_fraction is not None:
         check_range(min_fraction, 0.0, 1.0, "min_fraction")
+    check_range(min_seen, 0.0, 1.0, "min_seen")
     if min_faces is None and min_fraction is None:
         min_fraction = 0.05
     comp = face_components(mesh)
@@ -57,7 +68,23 @@ def remove_floaters(mesh: Mesh, min_faces: int | None = None, min_fraction: floa
         keep_comp &= sizes >= int(min_faces)
     if min_fraction is not None:
         keep_comp &= sizes >= min_fraction * sizes.max()
+    if seen_points is not None and len(seen_points) and radius > 0:
+        keep_comp |= seen_component_counts(mesh, comp, seen_points, radius) >= max(1.0, min_seen * len(seen_points))
     return mesh.submesh(keep_comp[comp])
+
+
+def seen_component_counts(mesh: Mesh, comp: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
+    """How many of ``points`` (float [M, 3]) have their nearest vertex within ``radius`` in each component of
+    ``comp`` (int [F], :func:`face_components`). int64 [number of components]."""
+    from scipy.spatial import cKDTree
+
+    check_shape(np.asarray(points), "M 3", "seen_points")
+    vert_comp = np.full(mesh.num_vertices, -1, dtype=np.int64)
+    vert_comp[mesh.faces.reshape(-1)] = np.repeat(comp, 3)
+    dist, idx = cKDTree(mesh.vertices).query(np.asarray(points, dtype=np.float64), distance_upper_bound=radius)
+    hit = np.isfinite(dist)
+    c = vert_comp[idx[hit]]
+    return np.bincount(c[c >= 0], minlength=int(comp.max()) + 1 if comp.size else 0)
 
 
 def remove_unseen_faces(mesh: Mesh, cameras, depths: torch.Tensor | np.ndarray | None = None,

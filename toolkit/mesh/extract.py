@@ -13,7 +13,8 @@ from .._checks import ConfigError, check_range
 from ._field import _call_field, _check_aabb, _density, _progress, _to_numpy
 from .types import DensityFn, MaterialFn, Mesh, _as_mesh, compute_vertex_normals
 
-__all__ = ["MeshConfig", "opacity_level", "level_from_rays", "grid_spec", "extract_mesh", "query_vertex_attributes"]
+__all__ = ["MeshConfig", "opacity_level", "level_from_rays", "seen_surface_points", "grid_spec", "extract_mesh",
+           "query_vertex_attributes"]
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,54 @@ def _training_rays(cameras, n_rays: int, seed: int, aabb):
     return generate_rays(cams, view, pixels=torch.stack([pix % width, pix // width], -1), aabb=aabb)
 
 
+def _half_transmittance(density_fn: DensityFn, rays, edges_fn, device: str) -> tuple[torch.Tensor, np.ndarray]:
+    """March ``rays`` (256 at a time) over the sample edges ``edges_fn(rays) -> float [R, S + 1]`` (distances
+    along each ray); return the points where each ray's transmittance first falls to ½ (float [M, 3], the
+    surfaces the photos see) and σ there (float [M]); rays that stay more than half transparent give nothing."""
+    pts_all, sig_all = [], []
+    for s in range(0, len(rays), 256):
+        r = rays[s:s + 256]
+        edges = edges_fn(r)
+        mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
+        delta = (edges[:, 1:] - edges[:, :-1]).numpy()
+        pts = r.origins[:, None] + r.directions[:, None] * mids[..., None]
+        sigma = np.maximum(_density(density_fn, pts.reshape(-1, 3).numpy(), device).reshape(mids.shape), 0.0)
+        reached = np.cumsum(sigma * delta, axis=1) >= math.log(2.0)
+        ok = np.nonzero(reached.any(1))[0]
+        first = reached.argmax(1)[ok]
+        pts_all.append(pts[torch.from_numpy(ok), torch.from_numpy(first)])
+        sig_all.append(sigma[ok, first])
+    if not pts_all:
+        return torch.zeros(0, 3), np.zeros(0)
+    return torch.cat(pts_all), np.concatenate(sig_all)
+
+
+def seen_surface_points(density_fn: DensityFn, cameras, aabb, n_rays: int = 4096, samples: int = 256,
+                        seed: int = 0, device: str = "cpu") -> np.ndarray:
+    """Points where ``n_rays`` training rays (pixels drawn uniformly over all views, seeded) reach half
+    transmittance: what the photos see of the field. ``aabb`` is a float [2, 3] box (``samples`` uniform samples
+    between entry and exit) or a contracted :class:`toolkit.space.SceneSpace` (samples uniform in contracted arc
+    length, out to its far radius). Returns float64 [M, 3], M ≤ ``n_rays``."""
+    from ..space import contracted_edges
+
+    if hasattr(aabb, "contraction"):
+        sp = aabb.to("cpu")
+        rays = _training_rays(cameras, n_rays, seed, sp)
+        edges_fn = lambda r: contracted_edges(r.origins, r.directions, r.near, r.far, sp, samples, perturb=False)  # noqa: E731
+    else:
+        box = torch.as_tensor(_check_aabb(aabb), dtype=torch.float32)
+        rays = _training_rays(cameras, n_rays, seed, box)
+        rays = rays[torch.nonzero(rays.far > rays.near).squeeze(-1)]
+        edges_fn = lambda r: _uniform_edges(r, samples)  # noqa: E731
+    pts, _ = _half_transmittance(density_fn, rays, edges_fn, device)
+    return pts.double().numpy()
+
+
+def _uniform_edges(r, samples: int) -> torch.Tensor:
+    span = (r.far - r.near)[:, None]
+    return r.near[:, None] + span * torch.arange(samples + 1, dtype=torch.float32)[None] / samples
+
+
 def level_from_rays(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndarray, voxel_size: float,
                     quantile: float = 0.1, n_rays: int = 4096, samples: int = 256, seed: int = 0,
                     device: str = "cpu") -> tuple[float, dict]:
@@ -99,19 +148,7 @@ def level_from_rays(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndar
     box = torch.as_tensor(_check_aabb(aabb), dtype=torch.float32)
     rays = _training_rays(cameras, n_rays, seed, box)
     rays = rays[torch.nonzero(rays.far > rays.near).squeeze(-1)]
-    sig_at = []
-    for s in range(0, len(rays), 256):  # 256 rays x `samples` points per density query
-        r = rays[s:s + 256]
-        span = (r.far - r.near)[:, None]
-        ts = r.near[:, None] + span * (torch.arange(samples, dtype=torch.float32) + 0.5)[None] / samples
-        pts = r.origins[:, None] + r.directions[:, None] * ts[..., None]
-        sigma = np.maximum(_density(density_fn, pts.reshape(-1, 3).numpy(), device).reshape(ts.shape), 0.0)
-        tau = np.cumsum(sigma * (span.numpy() / samples), axis=1)
-        reached = tau >= math.log(2.0)
-        ok = reached.any(1)
-        first = reached.argmax(1)
-        sig_at.append(sigma[np.arange(len(r)), first][ok])
-    vals = np.concatenate(sig_at) if sig_at else np.zeros(0)
+    _, vals = _half_transmittance(density_fn, rays, lambda r: _uniform_edges(r, samples), device)
     rep = {"cap": cap, "quantile": quantile, "rays": int(n_rays), "rays_opaque": int(vals.size)}
     if vals.size == 0:
         return cap, {**rep, "level": cap, "sigma_quantiles": None}
@@ -122,7 +159,7 @@ def level_from_rays(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndar
 
 def surface_region(density_fn: DensityFn, cameras, space, n_rays: int = 4096, samples: int = 256,
                    quantile: float = 0.01, pad: float = 0.02, max_radius: float = 8.0, seed: int = 0,
-                   device: str = "cpu") -> tuple[np.ndarray, dict]:
+                   device: str = "cpu", points: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """The region worth meshing in an unbounded (contracted) field: where the training rays reach half
     transmittance.
 
@@ -137,30 +174,20 @@ def surface_region(density_fn: DensityFn, cameras, space, n_rays: int = 4096, sa
         cameras: :class:`toolkit.cameras.Cameras` (the training views).
         space: :class:`toolkit.space.SceneSpace` of the field (contracted).
         n_rays, samples, quantile, pad, max_radius, seed, device: see above.
+        points: the :func:`seen_surface_points` of these arguments when already computed (not marched again).
 
     Returns:
         (box float64 [2, 3] metres, report ``{"rays", "rays_opaque", "points_kept", "box"}``). Without any opaque
         ray the scene box itself.
     """
-    from ..space import box_radius, contracted_edges
+    from ..space import box_radius
 
     sp = space.to("cpu")
-    rays = _training_rays(cameras, n_rays, seed, sp)
-    pts_all = []
-    for s in range(0, len(rays), 256):
-        r = rays[s:s + 256]
-        edges = contracted_edges(r.origins, r.directions, r.near, r.far, sp, samples, perturb=False)
-        mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
-        delta = (edges[:, 1:] - edges[:, :-1]).numpy()
-        pts = r.origins[:, None] + r.directions[:, None] * mids[..., None]
-        sigma = np.maximum(_density(density_fn, pts.reshape(-1, 3).numpy(), device).reshape(mids.shape), 0.0)
-        reached = np.cumsum(sigma * delta, axis=1) >= math.log(2.0)
-        ok = reached.any(1)
-        first = reached.argmax(1)
-        pts_all.append(pts[torch.from_numpy(np.nonzero(ok)[0]), torch.from_numpy(first[ok])])
-    pts = torch.cat(pts_all) if pts_all else torch.zeros(0, 3)
+    if points is None:
+        points = seen_surface_points(density_fn, cameras, sp, n_rays, samples, seed, device)
+    pts = torch.as_tensor(points, dtype=torch.float64)
     rep = {"rays": int(n_rays), "rays_opaque": int(len(pts))}
-    pts = pts[box_radius(pts, sp.aabb) <= max_radius].double().numpy()
+    pts = pts[box_radius(pts, sp.aabb.double()) <= max_radius].numpy()
     rep["points_kept"] = int(len(pts))
     if len(pts) < 16:
         box = sp.aabb.double().numpy()
