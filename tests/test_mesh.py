@@ -319,6 +319,8 @@ def test_a_small_component_the_photos_see_is_not_a_floater():
     assert remove_floaters(mesh, seen_points=np.concatenate([on_big, far]), radius=0.05).num_faces == int((~small).sum())
     with pytest.raises(ConfigError, match="min_seen"):
         remove_floaters(mesh, seen_points=seen, radius=0.05, min_seen=1.5)
+    with pytest.raises(ConfigError, match="positive radius"):
+        remove_floaters(mesh, seen_points=seen)
 
 
 def test_build_mesh_keeps_a_small_object_the_cameras_look_at():

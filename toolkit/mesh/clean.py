@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
-from .._checks import ShapeError, check_range, check_shape
+from .._checks import ConfigError, ShapeError, check_range, check_shape
 from ._field import _to_numpy
 from .types import Mesh
 
@@ -68,7 +70,9 @@ def remove_floaters(mesh: Mesh, min_faces: int | None = None, min_fraction: floa
         keep_comp &= sizes >= int(min_faces)
     if min_fraction is not None:
         keep_comp &= sizes >= min_fraction * sizes.max()
-    if seen_points is not None and len(seen_points) and radius > 0:
+    if seen_points is not None and len(seen_points):
+        if not (math.isfinite(radius) and radius > 0):
+            raise ConfigError(f"radius={radius!r}: seen_points need a positive radius in metres (a few voxels)")
         keep_comp |= seen_component_counts(mesh, comp, seen_points, radius) >= max(1.0, min_seen * len(seen_points))
     return mesh.submesh(keep_comp[comp])
 
