@@ -164,19 +164,22 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
     stats: dict = {"method": cfg.method, "resolution": cfg.resolution}
     t0 = time.perf_counter()
     box = np.asarray(aabb.detach().cpu().numpy() if hasattr(aabb, "detach") else aabb, dtype=np.float64)
-    seen = None  # where the training rays reach half transmittance: what the photos see (floater test)
+    seen = seen_sigma = None  # where the training rays reach half transmittance (what the photos see) and σ there
     if space is not None and space.contraction and cameras is not None:
         # unbounded field: mesh where the photos' rays find surfaces (walls, floor, objects), not the sky
         seen = seen_surface_points(density_fn, cameras, space, device=cfg.device)
         box, stats["region"] = surface_region(density_fn, cameras, space, device=cfg.device, points=seen)
-    elif cameras is not None and cfg.min_component > 0:
-        seen = seen_surface_points(density_fn, cameras, box, device=cfg.device)
+    elif cameras is not None and (cfg.min_component > 0 or (cfg.method == "mc" and cfg.level is None
+                                                            and cfg.level_quantile > 0)):
+        # bounded: the same box rays give the floater test and the iso-level (one march for both)
+        seen, seen_sigma = seen_surface_points(density_fn, cameras, box, device=cfg.device, with_sigma=True)
     if cfg.method == "mc":
         level = cfg.level
         if level is None and cfg.level_quantile > 0 and cameras is not None:
             voxel, _ = grid_spec(box, cfg.resolution)  # the voxel extract_mesh will use
             level, stats["level_from_rays"] = level_from_rays(density_fn, cameras, box, voxel,
-                                                              quantile=cfg.level_quantile, device=cfg.device)
+                                                              quantile=cfg.level_quantile, device=cfg.device,
+                                                              sigma_at=seen_sigma)
         mesh = extract_mesh(density_fn, box, MeshConfig(resolution=cfg.resolution, level=level, device=cfg.device))
         stats["level"] = level
     else:

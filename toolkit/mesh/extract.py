@@ -100,11 +100,12 @@ def _half_transmittance(density_fn: DensityFn, rays, edges_fn, device: str) -> t
 
 
 def seen_surface_points(density_fn: DensityFn, cameras, aabb, n_rays: int = 4096, samples: int = 256,
-                        seed: int = 0, device: str = "cpu") -> np.ndarray:
+                        seed: int = 0, device: str = "cpu", with_sigma: bool = False):
     """Points where ``n_rays`` training rays (pixels drawn uniformly over all views, seeded) reach half
     transmittance: what the photos see of the field. ``aabb`` is a float [2, 3] box (``samples`` uniform samples
     between entry and exit) or a contracted :class:`toolkit.space.SceneSpace` (samples uniform in contracted arc
-    length, out to its far radius). Returns float64 [M, 3], M ≤ ``n_rays``."""
+    length, out to its far radius). Returns float64 [M, 3], M ≤ ``n_rays``; with ``with_sigma`` also σ there
+    (float [M]: what :func:`level_from_rays` takes as ``sigma_at`` for the same box and arguments)."""
     from ..space import contracted_edges
 
     if hasattr(aabb, "contraction"):
@@ -116,8 +117,8 @@ def seen_surface_points(density_fn: DensityFn, cameras, aabb, n_rays: int = 4096
         rays = _training_rays(cameras, n_rays, seed, box)
         rays = rays[torch.nonzero(rays.far > rays.near).squeeze(-1)]
         edges_fn = lambda r: _uniform_edges(r, samples)  # noqa: E731
-    pts, _ = _half_transmittance(density_fn, rays, edges_fn, device)
-    return pts.double().numpy()
+    pts, sigma = _half_transmittance(density_fn, rays, edges_fn, device)
+    return (pts.double().numpy(), sigma) if with_sigma else pts.double().numpy()
 
 
 def _uniform_edges(r, samples: int) -> torch.Tensor:
@@ -127,7 +128,7 @@ def _uniform_edges(r, samples: int) -> torch.Tensor:
 
 def level_from_rays(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndarray, voxel_size: float,
                     quantile: float = 0.1, n_rays: int = 4096, samples: int = 256, seed: int = 0,
-                    device: str = "cpu") -> tuple[float, dict]:
+                    device: str = "cpu", sigma_at: np.ndarray | None = None) -> tuple[float, dict]:
     """Iso-level from the training rays (module docstring): the ``quantile`` of σ at each ray's half-transmittance
     crossing, capped at :func:`opacity_level` of ``voxel_size``.
 
@@ -138,6 +139,8 @@ def level_from_rays(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndar
         voxel_size: marching-cubes voxel edge, metres (the cap is ln 2 / voxel_size).
         quantile: in (0, 1]; lower keeps softer surfaces.
         n_rays, samples: rays marched and uniform samples per ray between box entry and exit.
+        sigma_at: σ at the crossings when already marched (:func:`seen_surface_points` with ``with_sigma`` on the
+            same box and arguments); the rays are then not marched again.
 
     Returns:
         (level σ* in 1/metre, report ``{"level", "cap", "quantile", "rays", "rays_opaque", "sigma_quantiles"}``).
@@ -145,10 +148,10 @@ def level_from_rays(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndar
     """
     check_range(quantile, 1e-6, 1.0, "quantile")
     cap = opacity_level(voxel_size)
-    box = torch.as_tensor(_check_aabb(aabb), dtype=torch.float32)
-    rays = _training_rays(cameras, n_rays, seed, box)
-    rays = rays[torch.nonzero(rays.far > rays.near).squeeze(-1)]
-    _, vals = _half_transmittance(density_fn, rays, lambda r: _uniform_edges(r, samples), device)
+    if sigma_at is not None:
+        vals = np.asarray(sigma_at)
+    else:
+        _, vals = seen_surface_points(density_fn, cameras, aabb, n_rays, samples, seed, device, with_sigma=True)
     rep = {"cap": cap, "quantile": quantile, "rays": int(n_rays), "rays_opaque": int(vals.size)}
     if vals.size == 0:
         return cap, {**rep, "level": cap, "sigma_quantiles": None}
