@@ -63,7 +63,7 @@ def score_scene(path: str, args) -> dict:
     from scipy import ndimage
 
     scene = load_scene(path, "train", upright="off")
-    if not _has_depth(scene):
+    if not scene.has_extra("depth"):
         raise SystemExit(f"{path}: no ground-truth depth maps in the train split; this benchmark scores against them")
     t0 = time.time()
     pts = triangulate_sparse_points(scene, SparsePointsConfig(max_views=len(scene)))
@@ -120,14 +120,6 @@ def score_scene(path: str, args) -> dict:
                      "within_10cm": float((e < 0.10).mean()) if len(e) else None,
                      "beyond_50cm": float((e > 0.50).mean()) if len(e) else None}
     return out
-
-
-def _has_depth(scene) -> bool:
-    try:
-        scene.load_extra(0, "depth")
-        return True
-    except Exception:
-        return False
 
 
 def main() -> int:

@@ -268,8 +268,10 @@ def test_sample_depth_normals_and_materials_are_consistent():
     canvas_y = scene["painting_plane"]["point"][1]
     corners = np.asarray(scene["painting_corners"])
     wall_y = scene["wall_plane"]["point"][1]
-    painting_roughness = scene["paintings"][0]["roughness"]  # not L_mat's painting target (0.8): no circular score
-    assert abs(painting_roughness - 0.8) > 0.1
+    from toolkit.losses import PAINTING_ROUGHNESS
+
+    painting_roughness = scene["paintings"][0]["roughness"]  # not L_mat's painting target: no circular score
+    assert abs(painting_roughness - PAINTING_ROUGHNESS) > 0.1
     rows, cols = np.mgrid[0:size, 0:size]
     d_cam = np.stack([(cols + 0.5 - c) / f, -(rows + 0.5 - c) / f, -np.ones((size, size))], -1)
     for frame in meta["frames"]:

@@ -173,10 +173,10 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
                                                             and cfg.level_quantile > 0)):
         # bounded: the same box rays give the floater test and the iso-level (one march for both)
         seen, seen_sigma = seen_surface_points(density_fn, cameras, box, device=cfg.device, with_sigma=True)
+    voxel = grid_spec(box, cfg.resolution)[0]  # marching cubes' (and the TSDF's) voxel: iso-level cap, floater radius
     if cfg.method == "mc":
         level = cfg.level
         if level is None and cfg.level_quantile > 0 and cameras is not None:
-            voxel, _ = grid_spec(box, cfg.resolution)  # the voxel extract_mesh will use
             level, stats["level_from_rays"] = level_from_rays(density_fn, cameras, box, voxel,
                                                               quantile=cfg.level_quantile, device=cfg.device,
                                                               sigma_at=seen_sigma)
@@ -186,7 +186,6 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
         if cameras is None:
             raise DarsError("--method tsdf needs the training cameras, but the RUN's field loader returned none")
         depths = render_depth(density_fn, cameras, box, DepthRenderConfig(samples=cfg.depth_samples, device=cfg.device))
-        voxel = float((box[1] - box[0]).max()) / cfg.resolution
         mesh = fuse_tsdf(depths, cameras, cfg=TsdfConfig(voxel_size=voxel, depth_max=float(np.linalg.norm(box[1] - box[0])) * 4))
     stats["extract_seconds"] = round(time.perf_counter() - t0, 3)
     stats["faces_extracted"] = mesh.num_faces
@@ -194,12 +193,12 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
         raise DarsError("the field produced an empty mesh (density never reaches the iso-level inside the box); "
                         "try a lower --level or check the RUN")
     if cfg.min_component > 0:
-        faces_before = mesh.num_faces
-        voxel = grid_spec(box, cfg.resolution)[0]
-        mesh = remove_floaters(mesh, min_fraction=cfg.min_component, seen_points=seen, radius=SEEN_RADIUS_VOXELS * voxel,
+        faces_before, radius = mesh.num_faces, SEEN_RADIUS_VOXELS * voxel
+        mesh = remove_floaters(mesh, min_fraction=cfg.min_component, seen_points=seen, radius=radius,
                                min_seen=cfg.min_seen)
-        stats["floaters"] = {"faces_removed": faces_before - mesh.num_faces, "seen_points": 0 if seen is None else len(seen),
-                             "radius_m": SEEN_RADIUS_VOXELS * voxel, "min_seen": cfg.min_seen}
+        stats["floaters"] = {"faces_removed": faces_before - mesh.num_faces,
+                             "seen_points": 0 if seen is None else len(seen), "radius_m": radius,
+                             "min_seen": cfg.min_seen}
     if cameras is not None and not cfg.keep_unseen:
         mesh = remove_unseen_faces(mesh, cameras)
     stats["faces_cleaned"] = mesh.num_faces

@@ -66,6 +66,7 @@ import torch
 
 from ._checks import DarsError
 from .io import linear_to_srgb, srgb_to_linear
+from .losses import PAINTING_ROUGHNESS
 from .metrics import (MetricUnavailable, albedo_mae, albedo_mae_aligned, env_light_l2, flip, load_lpips_weights, lpips,
                       material_mask, mean_iou, metallic_mae, normal_mae_deg, patch_masks, psnr, roughness_rmse, ssim,
                       uniform_view_indices, view_consistency)
@@ -730,8 +731,8 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
                                   "(metrics.albedo_mae_aligned; albedo_scale > 1: the albedo is too dark), same mask",
             "metallic_mae": "mean |metallic - GT metallic| on the material mask",
             "roughness_rmse_by_class": "roughness RMSE on the material mask split by ground-truth class (painting "
-                                       "apart: L_mat pulls painting roughness to 0.8, so that class is the one to "
-                                       "read against the scene's true painting roughness)",
+                                       f"apart: L_mat pulls painting roughness to {PAINTING_ROUGHNESS:g}, so that "
+                                       "class is the one to read against the scene's true painting roughness)",
             "semantics": "argmax of rendered logits; 255 where rendered opacity < 0.5",
             "geometry": "on pixels with a ground-truth depth: median |rendered depth - GT depth| (metres, along the "
                         "camera axis) and mean rendered opacity, over all of them and per ground-truth class; "

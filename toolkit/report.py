@@ -445,8 +445,10 @@ def _eval_markdown(doc: dict, written: dict[str, Path]) -> str:
               "known only up to a common scale from photos; above 1 the albedo is too dark), metallic MAE "
               f"{_fmt(mat.get('metallic_mae'), '{:.4f}')}.", ""]
     if mat.get("roughness_rmse_by_class"):
-        L += ["Roughness RMSE per ground-truth class (L_mat pulls painting roughness to 0.8; the painting figure is "
-              "the one that shows whether the field learned the scene's own): " + ", ".join(
+        from .losses import PAINTING_ROUGHNESS  # torch: kept out of the CLI's --help imports
+
+        L += [f"Roughness RMSE per ground-truth class (L_mat pulls painting roughness to {PAINTING_ROUGHNESS:g}; the "
+              "painting figure is the one that shows whether the field learned the scene's own): " + ", ".join(
                   f"{k} {_fmt(v, '{:.3f}')}" for k, v in mat["roughness_rmse_by_class"].items()), ""]
     if det.get("miou_per_class"):
         L += ["Per-class IoU: " + ", ".join(f"{k} {_fmt(v, '{:.3f}')}" for k, v in det["miou_per_class"].items()), ""]
