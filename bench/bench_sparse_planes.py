@@ -135,10 +135,9 @@ def main() -> int:
     args = ap.parse_args()
     if not args.scenes:
         sys.path.insert(0, str(ROOT / "samples"))
-        from galleries import cache_root  # where samples/galleries.py renders ($DARS_CACHE or ~/.cache/dars)
+        from galleries import cached_scenes  # where samples/galleries.py renders ($DARS_CACHE or ~/.cache/dars)
 
-        cached = sorted(str(p) for p in (cache_root() / "validation").glob("seed_*") if p.is_dir())
-        args.scenes = [str(ROOT / "samples" / "gallery")] + cached
+        args.scenes = [str(ROOT / "samples" / "gallery")] + cached_scenes()
         print("[sparse-planes] scenes: " + ", ".join(args.scenes))
     rows = [score_scene(s, args) for s in args.scenes]
     fmt = lambda x, p="{:.1%}": "-" if x is None else p.format(x)  # noqa: E731

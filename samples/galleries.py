@@ -58,6 +58,11 @@ def cache_root(root: str | Path | None = None) -> Path:
     return (Path(base).expanduser() if base else Path.home() / ".cache" / "dars") / "galleries"
 
 
+def cached_scenes(profile: str = "validation", root: str | Path | None = None) -> list[str]:
+    """The galleries of ``profile`` already rendered in the cache (sorted paths; none rendered here)."""
+    return sorted(str(p) for p in (cache_root(root) / profile).glob("seed_*") if p.is_dir())
+
+
 def _options(profile: str):
     import render_gallery as rg
 

@@ -26,3 +26,20 @@ def sample_scene_path() -> Path:
     if not (SAMPLE / "transforms_train.json").is_file():
         pytest.skip("bundled sample not rendered yet (samples/gallery)")
     return SAMPLE
+
+
+@pytest.fixture
+def sample_without_depth(tmp_path, sample_scene_path) -> Path:
+    """A copy of the bundled sample whose frames carry no ground-truth depth maps (``nodepth``)."""
+    import json
+    import shutil
+
+    scene = tmp_path / "nodepth"
+    shutil.copytree(sample_scene_path, scene)
+    for split in ("train", "test"):
+        p = scene / f"transforms_{split}.json"
+        doc = json.loads(p.read_text())
+        for f in doc["frames"]:
+            f.pop("depth_file_path", None)
+        p.write_text(json.dumps(doc))
+    return scene

@@ -30,19 +30,8 @@ def test_collinear_points_give_no_plane():
     assert bsp.ransac_plane(X, np.ones(10), tau=0.01, rng=np.random.default_rng(0), iters=20) is None
 
 
-def test_a_scene_without_depth_maps_is_refused(tmp_path, sample_scene_path):
+def test_a_scene_without_depth_maps_is_refused(sample_without_depth):
     """Scoring needs ground-truth depth: a scene without it stops with its name and the reason."""
-    import json
-    import shutil
-
-    scene = tmp_path / "nodepth"
-    shutil.copytree(sample_scene_path, scene)
-    for split in ("train", "test"):
-        p = scene / f"transforms_{split}.json"
-        doc = json.loads(p.read_text())
-        for f in doc["frames"]:
-            f.pop("depth_file_path", None)
-        p.write_text(json.dumps(doc))
     args = types.SimpleNamespace(dilate=3, tau=0.015, min_inliers=8, min_spread=0.15)
     with pytest.raises(SystemExit, match="nodepth.*ground-truth depth"):
-        bsp.score_scene(str(scene), args)
+        bsp.score_scene(str(sample_without_depth), args)

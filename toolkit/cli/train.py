@@ -71,6 +71,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="weight of the planarity loss: the rendered points of each large textureless region of a "
                         "photo (plain walls, floors) lie on one plane (default: 0 = off; README, \"A planarity prior for "
                         "textureless regions\")")
+    q.add_argument("--layout-depth", type=NONNEGATIVE, default=None, metavar="W",
+                   help="weight of the room-layout loss: rays through the photos' large textureless regions end on "
+                        "the room's box, found by a photometric plane sweep (toolkit.layout; default: 0 = off)")
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
     q.add_argument("--albedo-supervision", action="store_true",
                    help="use the scene's ground-truth albedo maps in L_mat (eq. 20); makes albedo MAE circular")
@@ -127,7 +130,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 _LOSS_OPTIONS = (("opacity-loss", "opacity_loss", "opacity"), ("sparse-depth", "sparse_depth", "sparse_depth"),
-                 ("depth-normal", "depth_normal", "depth_normal"), ("planar-loss", "planar_loss", "planar"))
+                 ("depth-normal", "depth_normal", "depth_normal"), ("planar-loss", "planar_loss", "planar"),
+                 ("layout-depth", "layout_depth", "layout_depth"))
 """Loss-weight options of ``dars train``: (flag, argparse attribute, ``LossWeights`` field); None = by scene type."""
 
 _RESUME_OPTIONS = (

@@ -65,6 +65,8 @@ class TrainData:
         colour_init: ColourTransforms or None.
         sparse_depth: pixels with a known depth (``losses.sparse_depth`` > 0;
             :func:`toolkit.bounds.sparse_depth_targets`) or None.
+        layout_depth: textureless-region pixels with a depth on the room's box (``losses.layout_depth`` > 0;
+            :func:`toolkit.layout.layout_depth_targets`) or None; ``layout`` holds the fitted box (JSON).
         planar: the large textureless regions of the photos (``losses.planar`` > 0;
             :func:`toolkit.regions.textureless_regions`) or None: ``{"views", "rows", "cols"}`` int64 [N] pixels
             (at most ``PLANAR_PIXELS_PER_REGION`` of each region, drawn at random), ``"offsets"`` int64 [K + 1]
@@ -84,6 +86,7 @@ class TrainData:
     priors_used: dict
     sparse_depth: dict | None = None
     planar: dict | None = None
+    layout_depth: dict | None = None
 
     @property
     def nbytes(self) -> int:
@@ -215,15 +218,32 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
     elif cfg.colour_correction == "on":
         priors["colour"] = "identity (learned)"
     log("[dars] priors: " + ", ".join(f"{k}={v}" for k, v in priors.items()))
-    sparse = None
+    sparse, points = None, None
     if (cfg.losses.sparse_depth or 0.0) > 0 and with_images:
         from ..bounds import sparse_depth_targets, triangulate_sparse_points
 
-        sparse = sparse_depth_targets(scene, triangulate_sparse_points(scene, log=log))
+        points = triangulate_sparse_points(scene, log=log)
+        sparse = sparse_depth_targets(scene, points)
         log(f"[dars] sparse depth: {len(sparse['depth'])} pixels with a triangulated depth "
             f"(weight {cfg.losses.sparse_depth:g})" + ("; none: the loss is off" if not len(sparse["depth"]) else ""))
         if not len(sparse["depth"]):
             sparse = None
+    layout = None
+    if cfg.losses.layout_depth > 0 and with_images:
+        from ..bounds import triangulate_sparse_points
+        from ..layout import fit_room_layout, layout_depth_targets
+
+        if points is None:
+            points = triangulate_sparse_points(scene, log=log)
+        room = fit_room_layout(scene, points.points, log=log)
+        layout = layout_depth_targets(scene, room)
+        layout["layout"] = room.to_json()
+        faces = [n for n, f in room.to_json()["faces"].items() if f["confident"]]
+        log(f"[dars] room layout: box {np.round(room.hi - room.lo, 2).tolist()}, faces used: "
+            f"{', '.join(faces) or 'none'}; {len(layout['depth'])} textureless pixels with a depth on it "
+            f"(weight {cfg.losses.layout_depth:g})" + ("; none: the loss is off" if not len(layout["depth"]) else ""))
+        if not len(layout["depth"]):
+            layout = None
     planar = None
     if want_planar:
         log(f"[dars] planar loss: {len(planar_parts)} textureless regions in {len({v for v, _ in planar_parts})} "
@@ -237,7 +257,8 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
                       "offsets": torch.from_numpy(np.cumsum([0] + [len(px) for _, px in planar_parts]))}
     return TrainData(scene=scene, images=images, labels=labels, metal=metal, weights=wm, distortion=dist,
                      albedo_gt=albedo_gt, l_env_init=l_env, l_env_source=l_src, colour_init=pri.colour,
-                     priors_used=priors, sparse_depth=sparse, planar=planar)
+                     priors_used=priors, sparse_depth=sparse, planar=planar,
+                     layout_depth=layout)
 
 
 def _layout_only(heights: torch.Tensor, widths: torch.Tensor) -> PackedViews:

@@ -214,7 +214,8 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                               "priors_root": str(Path(priors_root).resolve()) if priors_root else None,
                               "priors": data.priors_used, "l_env_init": data.l_env_init.tolist(),
                               "l_env_source": data.l_env_source, "torch": torch.__version__,
-                              "calibration": calibration, "world_size": world_size})
+                              "calibration": calibration, "world_size": world_size,
+                              "room_layout": (data.layout_depth or {}).get("layout")})
 
     write_run_config(saved_calibration)
     log_path = out / "log.jsonl"

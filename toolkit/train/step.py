@@ -285,9 +285,10 @@ def _render_pixels(state: TrainState, data: TrainData, views: torch.Tensor, rows
     return rays, _render(state, rays, wray, state.l_env.detach(), deferred=True)
 
 
-def _sparse_depth_term(state: TrainState, data: TrainData) -> torch.Tensor:
-    """:func:`toolkit.losses.sparse_depth_loss` on ``SPARSE_DEPTH_RAYS`` rays drawn from ``data.sparse_depth``."""
-    sd, dev = data.sparse_depth, state.device
+def _sparse_depth_term(state: TrainState, data: TrainData, sd: dict) -> torch.Tensor:
+    """:func:`toolkit.losses.sparse_depth_loss` on ``SPARSE_DEPTH_RAYS`` rays drawn from ``sd`` (pixels with a
+    depth target: ``data.sparse_depth`` or ``data.layout_depth``)."""
+    dev = state.device
     k = len(sd["depth"])
     pick = torch.randint(0, k, (min(k, SPARSE_DEPTH_RAYS),), generator=state.generator)
     rays, out = _render_pixels(state, data, sd["views"][pick], sd["rows"][pick], sd["cols"][pick])
@@ -409,7 +410,9 @@ def train_step(state: TrainState, data: TrainData) -> dict:
         else:
             terms["orientation"] = orientation_loss(out.normal, batch.rays.directions, out.opacity)
     if (lw.sparse_depth or 0.0) > 0 and data.sparse_depth is not None:
-        terms["sparse_depth"] = _sparse_depth_term(state, data)
+        terms["sparse_depth"] = _sparse_depth_term(state, data, data.sparse_depth)
+    if lw.layout_depth > 0 and data.layout_depth is not None:
+        terms["layout_depth"] = _sparse_depth_term(state, data, data.layout_depth)
     if lw.planar > 0 and data.planar is not None:
         terms["planar"] = _planar_term(state, data)
     if cfg.semantics and batch.labels is not None and lw.semantic > 0:
@@ -427,7 +430,7 @@ def train_step(state: TrainState, data: TrainData) -> dict:
     weight = {"rgb": lw.rgb, "ssim": lw.ssim, "mat": lw.mat, "psnr_loss": lw.psnr, "eikonal": lw.eikonal,
               "orientation": lw.orientation, "semantic": lw.semantic, "light_reg": lw.light_reg, "colour_reg": lw.colour_reg,
               "compactness": lw.compactness, "opacity": lw.opacity, "sparse_depth": lw.sparse_depth,
-              "depth_normal": lw.depth_normal, "planar": lw.planar}
+              "depth_normal": lw.depth_normal, "planar": lw.planar, "layout_depth": lw.layout_depth}
     loss = sum(weight[k] * v for k, v in terms.items())
     if not torch.isfinite(loss):
         bad = [k for k, v in terms.items() if not torch.isfinite(v)]

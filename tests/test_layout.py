@@ -1,0 +1,157 @@
+"""Room layout by photometric plane sweep (toolkit.layout): a box room rendered in code, its box recovered."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from toolkit._checks import ConfigError
+from toolkit.cameras import Cameras
+from toolkit.layout import FACE_NAMES, LayoutConfig, RoomLayout, box_depth, fit_room_layout, layout_depth_targets
+from toolkit.pinhole import look_at
+
+YAW = math.radians(20.0)  # the room is not aligned with the world axes
+R = np.array([[math.cos(YAW), -math.sin(YAW), 0.0], [math.sin(YAW), math.cos(YAW), 0.0], [0.0, 0.0, 1.0]])
+LO, HI = np.array([-2.0, -1.5, 0.0]), np.array([3.0, 2.0, 2.8])
+
+
+def _texture(q: np.ndarray, face: np.ndarray, plain: bool) -> np.ndarray:
+    """Colour [N, 3] of box points q (box frame) on faces: plain walls with a painting each, a tiled floor."""
+    base = np.array([[0.55, 0.52, 0.48], [0.50, 0.50, 0.52], [0.60, 0.55, 0.50], [0.45, 0.47, 0.50],
+                     [0.30, 0.20, 0.12], [0.80, 0.80, 0.80]])
+    col = base[face].copy()
+    if plain:
+        return np.full_like(col, 0.5)
+    k = face // 2
+    u = np.where(k[:, None] == 0, q[:, [1, 2]], np.where(k[:, None] == 1, q[:, [0, 2]], q[:, [0, 1]]))
+    wall = k < 2
+    inside = wall & (np.abs(u[:, 0] - 0.3) < 0.6) & (np.abs(u[:, 1] - 1.5) < 0.45)  # a painting on every wall
+    pat = 0.5 + 0.4 * np.sin(7 * u[:, 0] + 3 * np.sin(5 * u[:, 1])) * np.cos(9 * u[:, 1] + face)
+    col[inside] = pat[inside, None] * np.array([0.9, 0.6, 0.3])
+    floor = face == 4
+    tiles = ((np.floor(u[:, 0] / 0.5) + np.floor(u[:, 1] / 0.5)) % 2)[:, None] * 0.08
+    col[floor] += tiles[floor]
+    return col.clip(0, 1)
+
+
+class _BoxRoom:
+    """What :func:`fit_room_layout` reads of a Scene: cameras, len and load_image."""
+
+    def __init__(self, n: int = 16, size: int = 48, plain: bool = False):
+        rng = np.random.default_rng(0)
+        c2w = []
+        for i in range(n):
+            a = 2 * math.pi * i / n
+            eye = R @ np.array([0.5 + 1.2 * math.cos(a), 0.25 + 0.9 * math.sin(a), 1.4 + 0.1 * rng.standard_normal()])
+            target = R @ np.array([0.5 + 3.0 * math.cos(a + 0.4), 0.25 + 3.0 * math.sin(a + 0.4), 1.2])
+            c2w.append(look_at(eye, target, up=np.array([0.0, 0.0, 1.0])))
+        c2w = torch.tensor(np.stack(c2w), dtype=torch.float64)
+        f = torch.full((n,), size * 0.6, dtype=torch.float64)
+        c = torch.full((n,), size / 2, dtype=torch.float64)
+        s = torch.full((n,), size, dtype=torch.int64)
+        self.cameras = Cameras(c2w, f, f, c, c, s, s)
+        self.layout = RoomLayout(origin=np.zeros(3), axes=R.T.copy(), lo=LO, hi=HI, confident=np.ones(6, bool),
+                                 contrast=np.zeros(6), coverage=np.zeros(6))
+        self.size, self.plain = size, plain
+        # sparse points as SIFT would find them: on the paintings (and a few on the floor tiles)
+        pts = []
+        for fidx in range(4):
+            k, side = divmod(fidx, 2)
+            q = np.zeros((40, 3))
+            q[:, k] = HI[k] if side else LO[k]
+            other = 1 - k
+            q[:, other] = 0.3 + rng.uniform(-0.6, 0.6, 40)
+            q[:, 2] = 1.5 + rng.uniform(-0.45, 0.45, 40)
+            pts.append(q)
+        self.points = np.concatenate(pts) @ R.T
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def load_image(self, v: int) -> torch.Tensor:
+        from toolkit.layout import _view_rays
+
+        cams = self.cameras
+        d = _view_rays(cams.c2w[v:v + 1], cams.intrinsics()[v:v + 1], self.size, self.size)[0]
+        o = cams.c2w[v, :3, 3].expand_as(d)
+        t, face = box_depth(self.layout, o, d)
+        q = ((o + t[:, None] * d).numpy()) @ R  # world -> box frame (R's columns are the box axes)
+        col = _texture(q, face.numpy(), self.plain)
+        return torch.from_numpy(col.T.reshape(3, self.size, self.size)).float()
+
+
+CFG = LayoutConfig(max_side=48, max_views=16)
+
+
+def test_a_box_room_with_paintings_is_recovered_and_its_walls_count():
+    room = _BoxRoom()
+    lay = fit_room_layout(room, room.points, CFG)
+    assert abs(abs(lay.axes[2] @ np.array([0, 0, 1.0])) - 1) < 1e-3  # up
+    # the horizontal axes are the room's (either order and sign), not the world's
+    assert max(abs(lay.axes[0] @ R[:, 0]), abs(lay.axes[0] @ R[:, 1])) > math.cos(math.radians(1.0))
+    # every face's position, compared in world coordinates
+    q_true_lo, q_true_hi = [], []
+    for k in range(3):
+        a = lay.axes[k]
+        corners = np.array([[x, y, z] for x in (LO[0], HI[0]) for y in (LO[1], HI[1]) for z in (LO[2], HI[2])]) @ R.T
+        proj = (corners - lay.origin) @ a
+        q_true_lo.append(proj.min())
+        q_true_hi.append(proj.max())
+    err = np.abs(np.stack([lay.lo - q_true_lo, lay.hi - q_true_hi], 1).reshape(-1))
+    walls_floor = [0, 1, 2, 3, 4]
+    assert (err[walls_floor] < 0.12).all(), dict(zip(FACE_NAMES, err.round(3)))
+    assert lay.confident[walls_floor].all(), lay.to_json()
+    tg = layout_depth_targets(room, lay, regions=lambda v: np.ones((room.size, room.size), np.int32))
+    assert len(tg["depth"]) > 0.5 * len(room) * room.size ** 2
+    # the targets are the true box's depth along the camera axis
+    truth = []
+    for v in tg["views"].unique().tolist():
+        m = tg["views"] == v
+        from toolkit.layout import _view_rays
+
+        d = _view_rays(room.cameras.c2w[v:v + 1], room.cameras.intrinsics()[v:v + 1], room.size, room.size)[0]
+        idx = tg["rows"][m] * room.size + tg["cols"][m]
+        t, _ = box_depth(room.layout, room.cameras.c2w[v, :3, 3].expand(len(idx), 3), d[idx])
+        truth.append((t * (d[idx] @ -room.cameras.c2w[v, :3, 2])).float())
+    assert (tg["depth"] - torch.cat(truth)).abs().median() < 0.08
+
+
+def test_featureless_walls_give_no_face_and_no_target():
+    room = _BoxRoom(plain=True)
+    lay = fit_room_layout(room, room.points, CFG)
+    assert not lay.confident.any(), lay.to_json()
+    tg = layout_depth_targets(room, lay, regions=lambda v: np.ones((room.size, room.size), np.int32))
+    assert len(tg["depth"]) == 0
+
+
+def test_bad_layout_config_raises():
+    with pytest.raises(ConfigError):
+        LayoutConfig(rise_ratio=1.0)
+    with pytest.raises(ConfigError):
+        LayoutConfig(candidates=2)
+    with pytest.raises(ConfigError):
+        LayoutConfig(min_pixels=1.0)
+
+
+def test_layout_depth_option_trains_logs_and_is_recorded(sample_scene_path, tmp_path, capsys):
+    """`dars train --layout-depth W`: the box fitted from the photos, the term logged each step, the weight and the
+    box in config.json. Off by default."""
+    import json
+
+    from toolkit.cli import main
+
+    run = tmp_path / "l"
+    assert main(["train", str(sample_scene_path), "--out", str(run), "--steps", "3", "--batch-rays", "256",
+                 "--quiet", "--no-auto-priors", "--layout-depth", "0.1"]) == 0
+    meta = json.load(open(run / "config.json"))
+    assert meta["config"]["losses"]["layout_depth"] == 0.1
+    faces = meta["room_layout"]["faces"]
+    assert set(faces) == set(FACE_NAMES) and any(f["confident"] for f in faces.values())
+    rows = [json.loads(line) for line in open(run / "log.jsonl")]
+    vals = [r["layout_depth"] for r in rows if r.get("kind") == "train" and "layout_depth" in r]
+    assert vals and all(math.isfinite(v) and v >= 0 for v in vals), vals
+    assert main(["train", "--out", str(run), "--steps", "4", "--resume", "--layout-depth", "0.5", "--quiet"]) == 2
+    assert "--layout-depth" in capsys.readouterr().err

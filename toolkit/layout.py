@@ -1,0 +1,373 @@
+"""Room layout from posed photos: the box of a room's walls, floor and ceiling, found by a photometric plane sweep.
+
+A textureless wall's depth is not fixed by the photos at its own pixels (README, "Where the room's geometry goes
+wrong"), and SIFT finds few points on it (``bench/bench_sparse_planes.py``). Its *position* is fixed elsewhere,
+though: the paintings hung on it, the line where it meets the floor, the ceiling and the next wall, and the
+shading across it all line up between the photos only when the wall is placed where it is. Most rooms people
+photograph in a museum are boxes (Manhattan world); on the validation galleries, with the ground-truth room box,
+98 % of the pixels of the photos' textureless regions lie on the box within 5 cm (scoring only, 2026-11-28).
+
+:func:`fit_room_layout` estimates the box:
+
+1. **Axes.** Up is :func:`toolkit.upright.estimate_world_up` (cameras and the sparse points' dominant plane). The
+   horizontal axes are the rotation about up whose coordinate histograms of the sparse points are sharpest
+   (points on a wall share one coordinate), so the result does not depend on the input's frame.
+2. **Sweep.** Each of the six faces is moved, one at a time (coordinate descent, ``rounds`` passes), over a range
+   of offsets beyond the outermost camera (a room holds its cameras). For each offset every view's box depth map
+   is computed, the view's pixels are carried through it into its neighbour views, and the mean truncated colour
+   difference is the cost. The offset with the lowest cost is kept.
+3. **Confidence.** A face counts only where its cost curve has a clear minimum (``min_contrast``: the drop from the
+   curve's median to its minimum, relative to the median) that is not at the end of the range, and enough pixels
+   (``min_pixels``) see it. Pixels whose ray leaves the box through a face that does not count get no target.
+
+:func:`layout_depth_targets` turns the box into per-pixel depth targets for the pixels of the photos' textureless
+regions (:func:`toolkit.regions.textureless_regions`), in the format of :func:`toolkit.bounds.sparse_depth_targets`.
+No ground truth is read anywhere here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ._checks import ConfigError
+
+__all__ = ["LayoutConfig", "RoomLayout", "fit_room_layout", "layout_depth_targets", "box_depth"]
+
+FACE_NAMES = ("-a", "+a", "-b", "+b", "floor", "ceiling")
+"""Faces in the order of :attr:`RoomLayout.offsets`: the two horizontal axes' low and high sides, then along up."""
+
+
+@dataclass(frozen=True)
+class LayoutConfig:
+    """Options of :func:`fit_room_layout`."""
+
+    max_side: int = 128
+    """Photos are reduced to this longest side for the sweep."""
+    max_views: int = 32
+    """Views used (evenly spaced)."""
+    neighbours: int = 3
+    """Neighbour views each view is compared with."""
+    candidates: int = 24
+    """Offsets tried per face in a coarse round (geometric spacing beyond the outermost camera)."""
+    fine: int = 20
+    """Offsets tried per face in the final, fine round (linear, one coarse step either side of the minimum)."""
+    range_scale: float = 3.0
+    """The sweep reaches this many scene scales (median camera-to-point distance) beyond the outermost camera."""
+    rounds: int = 1
+    """Coarse coordinate-descent passes over the six faces (then one fine pass)."""
+    truncate: float = 0.1
+    """Colour differences are truncated here (occluders and specular highlights are outliers, not evidence)."""
+    min_contrast: float = 0.01
+    """A face counts when the cost rises by this fraction of its minimum on both sides: at offsets
+    ``rise_ratio`` times nearer the cameras and ``rise_ratio`` times farther (a flat side means the face may lie
+    anywhere there: a ceiling above the photos' view, a wall the photos only show blank)."""
+    rise_ratio: float = 1.3
+    """See ``min_contrast``."""
+    min_valid: float = 0.8
+    """Offsets whose pixels stay in their neighbours' views less than this fraction of the sweep's best are
+    skipped."""
+    blur: float = 1.0
+    """Gaussian blur (σ, pixels of the sweep's images) before comparing: a wider basin round the true offset."""
+    min_pixels: float = 0.01
+    """... and at least this fraction of the sweep's pixels leave the box through it."""
+
+    def __post_init__(self):
+        if self.max_side < 16 or self.max_views < 2 or self.neighbours < 1 or self.candidates < 4 or self.fine < 2 or self.rounds < 1 or self.rise_ratio <= 1:
+            raise ConfigError("LayoutConfig: need max_side >= 16, max_views >= 2, neighbours >= 1, candidates >= 4, "
+                              "rounds >= 1")
+        if self.range_scale <= 0 or self.truncate <= 0 or self.min_contrast < 0 or not 0 <= self.min_pixels < 1:
+            raise ConfigError("LayoutConfig: need range_scale > 0, truncate > 0, min_contrast >= 0, "
+                              "0 <= min_pixels < 1")
+
+
+@dataclass
+class RoomLayout:
+    """A room box in the scene's frame: ``origin + axes.T @ q`` for box coordinates ``q`` in ``[lo, hi]``."""
+
+    origin: np.ndarray
+    """float [3] the box frame's origin (world)."""
+    axes: np.ndarray
+    """float [3, 3] rows: the two horizontal axes and up (world, orthonormal)."""
+    lo: np.ndarray
+    """float [3] the low faces' coordinates."""
+    hi: np.ndarray
+    """float [3] the high faces' coordinates."""
+    confident: np.ndarray
+    """bool [6] which faces count (order :data:`FACE_NAMES`)."""
+    contrast: np.ndarray
+    """float [6] each face's cost contrast (see :class:`LayoutConfig`)."""
+    coverage: np.ndarray
+    """float [6] the fraction of the sweep's pixels that leave the box through each face."""
+    curves: list = field(default_factory=list)
+    """Per face: (offsets, costs) of the last round's sweep, for plots."""
+
+    def to_json(self) -> dict:
+        return {"origin": self.origin.tolist(), "axes": self.axes.tolist(), "lo": self.lo.tolist(),
+                "hi": self.hi.tolist(), "faces": {n: {"confident": bool(c), "contrast": round(float(k), 4),
+                                                      "coverage": round(float(v), 4)}
+                                                  for n, c, k, v in zip(FACE_NAMES, self.confident, self.contrast,
+                                                                        self.coverage)}}
+
+
+def _frame_from_up(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.array([1.0, 0, 0]) if abs(up[0]) < 0.9 else np.array([0, 1.0, 0])
+    e1 = a - (a @ up) * up
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(up, e1)
+
+
+def _sharpness(x: np.ndarray, b: float) -> float:
+    h = np.bincount(np.floor((x - x.min()) / b).astype(int)).astype(float)
+    return float((h ** 2).sum()) / max(len(x), 1) ** 2
+
+
+def _horizontal_axes(points: np.ndarray, up: np.ndarray, scale: float) -> np.ndarray:
+    """Rows: the two horizontal axes (sharpest point histograms, 0.5° steps) and up."""
+    e1, e2 = _frame_from_up(up)
+    if len(points) < 10:
+        return np.stack([e1, e2, up])
+    X = points - np.median(points, 0)
+    x1, x2 = X @ e1, X @ e2
+    b = 0.005 * scale
+    best, th_best = -1.0, 0.0
+    for th in np.deg2rad(np.arange(0.0, 90.0, 0.5)):
+        c, s = np.cos(th), np.sin(th)
+        v = _sharpness(c * x1 + s * x2, b) + _sharpness(-s * x1 + c * x2, b)
+        if v > best:
+            best, th_best = v, th
+    c, s = np.cos(th_best), np.sin(th_best)
+    return np.stack([c * e1 + s * e2, -s * e1 + c * e2, up])
+
+
+def box_depth(layout: RoomLayout, origins: torch.Tensor, dirs: torch.Tensor, lo=None, hi=None):
+    """Distance along each ray to where it leaves the box, and the face it leaves through.
+
+    Args:
+        origins: float [..., 3] world ray origins (inside the box). dirs: float [..., 3] unit world directions.
+        lo, hi: optional float [3] face coordinates overriding the layout's (used by the sweep).
+    Returns:
+        (t float [...], face int64 [...] in :data:`FACE_NAMES` order).
+    """
+    axes = torch.as_tensor(layout.axes, dtype=dirs.dtype, device=dirs.device)
+    org = torch.as_tensor(layout.origin, dtype=dirs.dtype, device=dirs.device)
+    lo = torch.as_tensor(layout.lo if lo is None else lo, dtype=dirs.dtype, device=dirs.device)
+    hi = torch.as_tensor(layout.hi if hi is None else hi, dtype=dirs.dtype, device=dirs.device)
+    o = (origins - org) @ axes.T
+    d = dirs @ axes.T
+    pos = d > 0
+    safe = torch.where(d.abs() < 1e-12, torch.full_like(d, 1e-12), d)
+    t = torch.where(pos, (hi - o) / safe, (lo - o) / safe)
+    t = torch.where(t > 0, t, torch.full_like(t, float("inf")))
+    tmin, k = t.min(-1)
+    side = torch.gather(pos.long(), -1, k[..., None])[..., 0]
+    return tmin, 2 * k + side
+
+
+def _view_rays(c2w: torch.Tensor, K: torch.Tensor, H: int, W: int) -> torch.Tensor:
+    """Unit world directions [V, H*W, 3] of every pixel centre (OpenGL cameras, pixel centres at +0.5)."""
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=c2w.dtype) + 0.5, torch.arange(W, dtype=c2w.dtype) + 0.5,
+                            indexing="ij")
+    x = (xs.reshape(1, -1) - K[:, 0, 2, None]) / K[:, 0, 0, None]
+    y = -(ys.reshape(1, -1) - K[:, 1, 2, None]) / K[:, 1, 1, None]
+    d = torch.stack([x, y, -torch.ones_like(x)], -1) @ c2w[:, :3, :3].transpose(1, 2)
+    return d / d.norm(dim=-1, keepdim=True)
+
+
+class _Sweep:
+    """Photometric cost of a box hypothesis over view pairs (small images, all pixels)."""
+
+    def __init__(self, scene, views: np.ndarray, cfg: LayoutConfig):
+        from .sampling import neighbour_views
+
+        cams = scene.cameras[views.tolist()]
+        imgs = []
+        for v in views:
+            im = scene.load_image(int(v)).float()
+            h, w = im.shape[1:]
+            s = min(1.0, cfg.max_side / max(h, w))
+            if s < 1.0:
+                im = F.interpolate(im[None], size=(max(1, round(h * s)), max(1, round(w * s))), mode="area")[0]
+            imgs.append(im)
+        H, W = imgs[0].shape[1:]
+        if any(im.shape[1:] != (H, W) for im in imgs):
+            imgs = [F.interpolate(im[None], size=(H, W), mode="area")[0] for im in imgs]
+        self.img = torch.stack(imgs).double()  # [V, 3, H, W]
+        if cfg.blur > 0:
+            from .metrics import gaussian_blur
+
+            V_, C_, H_, W_ = self.img.shape
+            self.img = gaussian_blur(self.img.reshape(V_ * C_, H_, W_), cfg.blur).reshape(V_, C_, H_, W_)
+        sx = W / cams.width.double()
+        sy = H / cams.height.double()
+        K = cams.intrinsics().double().clone()
+        K[:, 0, 0] *= sx
+        K[:, 0, 2] *= sx
+        K[:, 1, 1] *= sy
+        K[:, 1, 2] *= sy
+        self.K, self.c2w, self.H, self.W = K, cams.c2w.double(), H, W
+        self.dirs = _view_rays(self.c2w, K, H, W)  # [V, P, 3]
+        self.origins = self.c2w[:, :3, 3]
+        nb = neighbour_views(cams, min(cfg.neighbours, len(views) - 1))
+        self.pi = torch.arange(len(views)).repeat_interleave(nb.shape[1])
+        self.pj = nb.reshape(-1).long()
+        self.target = self.img.flatten(2)[self.pi]  # [Np, 3, P]
+        self.truncate = cfg.truncate
+
+    def cost(self, layout: RoomLayout, lo: np.ndarray, hi: np.ndarray) -> tuple[float, np.ndarray, float]:
+        """(mean truncated colour difference of the pixels carried into a neighbour's view, the fraction of pixels
+        leaving the box through each face, the fraction of pixel pairs in view)."""
+        t, face = box_depth(layout, self.origins[:, None, :], self.dirs, lo, hi)  # [V, P]
+        X = self.origins[:, None, :] + t[..., None] * self.dirs
+        Xi = X[self.pi]  # [Np, P, 3]
+        cj = self.c2w[self.pj]
+        rel = (Xi - cj[:, None, :3, 3]) @ cj[:, :3, :3]
+        z = -rel[..., 2]
+        Kj = self.K[self.pj]
+        zs = torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
+        u = Kj[:, 0, 0, None] * rel[..., 0] / zs + Kj[:, 0, 2, None]
+        v = -Kj[:, 1, 1, None] * rel[..., 1] / zs + Kj[:, 1, 2, None]
+        grid = torch.stack([2 * u / self.W - 1, 2 * v / self.H - 1], -1)
+        ok = (z > 0) & (grid.abs() <= 1).all(-1) & torch.isfinite(t[self.pi])
+        grid = torch.where(ok[..., None], grid, torch.zeros_like(grid))
+        sampled = F.grid_sample(self.img[self.pj], grid[:, None], mode="bilinear", padding_mode="border",
+                                align_corners=False)[:, :, 0]
+        err = (sampled - self.target).abs().mean(1).clamp_max(self.truncate)
+        n = ok.sum()
+        c = float((err * ok).sum() / n.clamp_min(1)) if n > 0 else float("inf")
+        cover = np.bincount(face.reshape(-1).numpy(), minlength=6) / face.numel()
+        return c, cover, float(n) / ok.numel()
+
+
+def fit_room_layout(scene, points: np.ndarray | None = None, cfg: LayoutConfig = LayoutConfig(), log=None,
+                    up: np.ndarray | None = None) -> RoomLayout:
+    """Estimate the room's box from posed photos (see the module docstring).
+
+    Args:
+        scene: a :class:`toolkit.scene.Scene` (train split).
+        points: float [P, 3] sparse points (:func:`toolkit.bounds.triangulate_sparse_points`); None: triangulated.
+        cfg: options.
+        log: optional callable for progress lines.
+        up: optional unit world up; default :func:`toolkit.upright.estimate_world_up`.
+    Returns:
+        :class:`RoomLayout`; faces without a clear photometric minimum have ``confident`` False.
+    """
+    from .upright import estimate_world_up
+
+    c2w = scene.cameras.c2w.double().numpy()
+    cams = c2w[:, :3, 3]
+    if points is None:
+        from .bounds import triangulate_sparse_points
+
+        points = triangulate_sparse_points(scene, log=log).points
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    if up is None:
+        up = estimate_world_up(c2w, points if len(points) >= 10 else None).up
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    if len(points) >= 10:
+        scale = float(np.median(np.linalg.norm(points[:, None] - cams[None, ::max(1, len(cams) // 32)], axis=-1)))
+    else:
+        scale = float(np.median(np.linalg.norm(cams - cams.mean(0), axis=-1))) or 1.0
+    axes = _horizontal_axes(points, up, scale)
+    origin = cams.mean(0)
+    qc = (cams - origin) @ axes.T
+    cmin, cmax = qc.min(0), qc.max(0)
+    margin = 0.02 * scale
+    steps = np.geomspace(0.02, cfg.range_scale, cfg.candidates) * scale
+    lo, hi = cmin - margin - steps[0], cmax + margin + steps[0]
+    if len(points) >= 10:  # start from the points' robust extremes (beyond the cameras)
+        qp = (points - origin) @ axes.T
+        lo = np.minimum(lo, np.percentile(qp, 1, axis=0))
+        hi = np.maximum(hi, np.percentile(qp, 99, axis=0))
+    views = np.unique(np.linspace(0, len(scene) - 1, min(len(scene), cfg.max_views)).round().astype(int))
+    layout = RoomLayout(origin=origin, axes=axes, lo=lo.copy(), hi=hi.copy(), confident=np.zeros(6, bool),
+                        contrast=np.zeros(6), coverage=np.zeros(6))
+    sweep = _Sweep(scene, views, cfg)
+    def sweep_face(f, offs):
+        k, side = divmod(f, 2)
+        costs, valid = [], []
+        for o in offs:
+            lo2, hi2 = lo.copy(), hi.copy()
+            (hi2 if side else lo2)[k] = o
+            c, _, v = sweep.cost(layout, lo2, hi2)
+            costs.append(c)
+            valid.append(v)
+        costs, valid = np.array(costs), np.array(valid)
+        # a face pressed against the cameras carries its pixels out of the neighbours' views, and the few pixels
+        # left compare well: offsets that keep too few pixels in view are not candidates
+        return np.where(valid >= cfg.min_valid * valid.max(), costs, np.inf)
+
+    curves = [None] * 6
+    for rnd in range(cfg.rounds + 1):
+        for f in range(6):
+            k, side = divmod(f, 2)
+            sgn = 1.0 if side else -1.0
+            ext = (cmax[k] if side else cmin[k]) + sgn * margin
+            if rnd < cfg.rounds:  # coarse: geometric offsets beyond the outermost camera
+                dist = steps
+            else:  # fine: linear offsets round the coarse minimum, one coarse step either side
+                d0 = abs((hi if side else lo)[k] - ext)
+                j = int(np.argmin(np.abs(steps - d0)))
+                a, b = steps[max(j - 1, 0)], steps[min(j + 1, len(steps) - 1)]
+                dist = np.unique(np.concatenate([np.linspace(a, b, cfg.fine), [d0]]))
+            offs = ext + sgn * dist
+            costs = sweep_face(f, offs)
+            j = int(np.argmin(costs))
+            (hi if side else lo)[k] = offs[j]
+            if rnd < cfg.rounds:
+                curves[f] = (offs, costs)
+        if log is not None:
+            log(f"[dars] room layout pass {rnd + 1}/{cfg.rounds + 1}: size {np.round(hi - lo, 2).tolist()}")
+    for f in range(6):  # confidence from the coarse curve: the cost must rise on both sides of the minimum
+        k, side = divmod(f, 2)
+        sgn = 1.0 if side else -1.0
+        ext = (cmax[k] if side else cmin[k]) + sgn * margin
+        offs, costs = curves[f]
+        dist = np.abs(offs - ext)
+        d0 = abs((hi if side else lo)[k] - ext)
+        cmin_ = float(sweep.cost(layout, lo, hi)[0])
+        o = np.argsort(dist)
+        o = o[np.isfinite(costs[o])]
+        at = np.interp([d0 / cfg.rise_ratio, d0 * cfg.rise_ratio], dist[o], costs[o], left=np.nan, right=np.nan)
+        rise_near, rise_far = (at - cmin_) / max(cmin_, 0.01 * cfg.truncate)  # blank photos: no rise at all
+        rise_near, rise_far = (0.0 if not np.isfinite(r) else float(r) for r in (rise_near, rise_far))
+        layout.contrast[f] = min(rise_near, rise_far)
+        layout.confident[f] = layout.contrast[f] >= cfg.min_contrast
+    layout.lo, layout.hi, layout.curves = lo, hi, curves
+    layout.coverage = sweep.cost(layout, lo, hi)[1]
+    layout.confident &= layout.coverage >= cfg.min_pixels
+    return layout
+
+
+def layout_depth_targets(scene, layout: RoomLayout, regions=None) -> dict[str, torch.Tensor]:
+    """Depth targets for the pixels of the photos' textureless regions whose ray leaves the box through a face
+    that counts; the format of :func:`toolkit.bounds.sparse_depth_targets` (depth along the camera axis)."""
+    from .regions import textureless_regions
+
+    cams = scene.cameras
+    c2w = cams.c2w.double()
+    Ks = cams.intrinsics().double()
+    conf = torch.as_tensor(layout.confident)
+    out = {"views": [], "rows": [], "cols": [], "depth": []}
+    for v in range(len(scene)):
+        reg = textureless_regions(scene.load_image(v)) if regions is None else regions(v)
+        rows, cols = np.nonzero(reg > 0)
+        if not len(rows):
+            continue
+        H, W = reg.shape
+        d = _view_rays(c2w[v:v + 1], Ks[v:v + 1], H, W)[0]
+        idx = torch.from_numpy(rows * W + cols)
+        t, face = box_depth(layout, c2w[v, :3, 3].expand(len(idx), 3), d[idx])
+        ok = conf[face] & torch.isfinite(t)
+        z = t * (d[idx] @ (-c2w[v, :3, 2]))
+        out["views"].append(torch.full((int(ok.sum()),), v, dtype=torch.int64))
+        out["rows"].append(torch.from_numpy(rows)[ok].long())
+        out["cols"].append(torch.from_numpy(cols)[ok].long())
+        out["depth"].append(z[ok].float())
+    if not out["views"]:
+        return {"views": torch.zeros(0, dtype=torch.int64), "rows": torch.zeros(0, dtype=torch.int64),
+                "cols": torch.zeros(0, dtype=torch.int64), "depth": torch.zeros(0)}
+    return {k: torch.cat(v) for k, v in out.items()}
