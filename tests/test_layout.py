@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from toolkit._checks import ConfigError
-from toolkit.cameras import Cameras
+from toolkit.cameras import Cameras, generate_rays
 from toolkit.layout import FACE_NAMES, LayoutConfig, RoomLayout, box_depth, fit_room_layout, layout_depth_targets
 from toolkit.pinhole import look_at
 
@@ -72,11 +72,8 @@ class _BoxRoom:
         return len(self.cameras)
 
     def load_image(self, v: int) -> torch.Tensor:
-        from toolkit.layout import _view_rays
-
-        cams = self.cameras
-        d = _view_rays(cams.c2w[v:v + 1], cams.intrinsics()[v:v + 1], self.size, self.size)[0]
-        o = cams.c2w[v, :3, 3].expand_as(d)
+        rays = generate_rays(self.cameras, [v])  # every pixel, row-major
+        o, d = rays.origins, rays.directions
         t, face = box_depth(self.layout, o, d)
         q = ((o + t[:, None] * d).numpy()) @ R  # world -> box frame (R's columns are the box axes)
         col = _texture(q, face.numpy(), self.plain)
@@ -110,12 +107,9 @@ def test_a_box_room_with_paintings_is_recovered_and_its_walls_count():
     truth = []
     for v in tg["views"].unique().tolist():
         m = tg["views"] == v
-        from toolkit.layout import _view_rays
-
-        d = _view_rays(room.cameras.c2w[v:v + 1], room.cameras.intrinsics()[v:v + 1], room.size, room.size)[0]
-        idx = tg["rows"][m] * room.size + tg["cols"][m]
-        t, _ = box_depth(room.layout, room.cameras.c2w[v, :3, 3].expand(len(idx), 3), d[idx])
-        truth.append((t * (d[idx] @ -room.cameras.c2w[v, :3, 2])).float())
+        rays = generate_rays(room.cameras, v, pixels=torch.stack([tg["cols"][m], tg["rows"][m]], -1))
+        t, _ = box_depth(room.layout, rays.origins, rays.directions)
+        truth.append((t * rays.z_scale).float())
     assert (tg["depth"] - torch.cat(truth)).abs().median() < 0.08
 
 

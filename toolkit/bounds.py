@@ -25,6 +25,7 @@ import torch
 from ._checks import ConfigError
 
 __all__ = ["SparsePointsConfig", "SparsePoints", "triangulate_sparse_points", "sparse_depth_targets",
+           "camera_point_distance",
            "SceneBoxConfig", "SceneBox",
            "scene_box_from_points", "box_from_cameras"]
 
@@ -223,6 +224,12 @@ def sparse_depth_targets(scene, points: SparsePoints) -> dict[str, torch.Tensor]
             "depth": torch.from_numpy(np.concatenate(depths).astype(np.float32))}
 
 
+def camera_point_distance(points: np.ndarray, origins: np.ndarray) -> float:
+    """Median distance between the points [P, 3] and (up to 32 evenly spaced of) the camera centres [N, 3]: the
+    scene's scale as the cameras see it."""
+    return float(np.median(np.linalg.norm(points[:, None, :] - origins[None, ::max(1, len(origins) // 32)], axis=-1)))
+
+
 def box_from_cameras(c2w: np.ndarray, fx: np.ndarray, width: np.ndarray) -> np.ndarray:
     """The camera-only estimate [2, 3]: the point closest (least squares) to all optical axes is the centre; the
     half-size is what the median camera sees at that distance, median(dist) · tan(half horizontal FOV)."""
@@ -296,7 +303,7 @@ def scene_box_from_points(points: np.ndarray, c2w: np.ndarray, fx: np.ndarray, w
     ext = np.maximum(hi - lo, 1e-6)
     lo, hi = lo - cfg.pad * ext, hi + cfg.pad * ext
     origins = c2w[:, :3, 3]
-    dist = np.median(np.linalg.norm(pts[:, None, :] - origins[None, ::max(1, len(origins) // 32)], axis=-1))
+    dist = camera_point_distance(pts, origins)
     inside = ((origins >= lo) & (origins <= hi)).all(-1)
     if inside.mean() > 0.5:  # cameras inside the scene (a room): their surroundings belong to it too
         m = cfg.camera_margin * dist

@@ -37,6 +37,7 @@ import torch
 import torch.nn.functional as F
 
 from ._checks import ConfigError
+from .cameras import Cameras, generate_rays
 
 __all__ = ["LayoutConfig", "RoomLayout", "fit_room_layout", "layout_depth_targets", "box_depth"]
 
@@ -170,16 +171,6 @@ def box_depth(layout: RoomLayout, origins: torch.Tensor, dirs: torch.Tensor, lo=
     return tmin, 2 * k + side
 
 
-def _view_rays(c2w: torch.Tensor, K: torch.Tensor, H: int, W: int) -> torch.Tensor:
-    """Unit world directions [V, H*W, 3] of every pixel centre (OpenGL cameras, pixel centres at +0.5)."""
-    ys, xs = torch.meshgrid(torch.arange(H, dtype=c2w.dtype) + 0.5, torch.arange(W, dtype=c2w.dtype) + 0.5,
-                            indexing="ij")
-    x = (xs.reshape(1, -1) - K[:, 0, 2, None]) / K[:, 0, 0, None]
-    y = -(ys.reshape(1, -1) - K[:, 1, 2, None]) / K[:, 1, 1, None]
-    d = torch.stack([x, y, -torch.ones_like(x)], -1) @ c2w[:, :3, :3].transpose(1, 2)
-    return d / d.norm(dim=-1, keepdim=True)
-
-
 class _Sweep:
     """Photometric cost of a box hypothesis over view pairs (small images, all pixels)."""
 
@@ -202,17 +193,12 @@ class _Sweep:
         if cfg.blur > 0:
             from .metrics import gaussian_blur
 
-            V_, C_, H_, W_ = self.img.shape
-            self.img = gaussian_blur(self.img.reshape(V_ * C_, H_, W_), cfg.blur).reshape(V_, C_, H_, W_)
-        sx = W / cams.width.double()
-        sy = H / cams.height.double()
-        K = cams.intrinsics().double().clone()
-        K[:, 0, 0] *= sx
-        K[:, 0, 2] *= sx
-        K[:, 1, 1] *= sy
-        K[:, 1, 2] *= sy
-        self.K, self.c2w, self.H, self.W = K, cams.c2w.double(), H, W
-        self.dirs = _view_rays(self.c2w, K, H, W)  # [V, P, 3]
+            self.img = gaussian_blur(self.img.flatten(0, 1), cfg.blur).view_as(self.img)
+        sx, sy = W / cams.width.double(), H / cams.height.double()
+        small = Cameras(cams.c2w.double(), cams.fx.double() * sx, cams.fy.double() * sy, cams.cx.double() * sx,
+                        cams.cy.double() * sy, torch.full_like(cams.width, W), torch.full_like(cams.height, H))
+        self.K, self.c2w, self.H, self.W = small.intrinsics(), small.c2w, H, W
+        self.dirs = generate_rays(small).directions.reshape(len(views), H * W, 3)  # every pixel, row-major
         self.origins = self.c2w[:, :3, 3]
         nb = neighbour_views(cams, min(cfg.neighbours, len(views) - 1))
         self.pi = torch.arange(len(views)).repeat_interleave(nb.shape[1])
@@ -258,6 +244,7 @@ def fit_room_layout(scene, points: np.ndarray | None = None, cfg: LayoutConfig =
     Returns:
         :class:`RoomLayout`; faces without a clear photometric minimum have ``confident`` False.
     """
+    from .bounds import camera_point_distance
     from .upright import estimate_world_up
 
     c2w = scene.cameras.c2w.double().numpy()
@@ -271,7 +258,7 @@ def fit_room_layout(scene, points: np.ndarray | None = None, cfg: LayoutConfig =
         up = estimate_world_up(c2w, points if len(points) >= 10 else None).up
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
     if len(points) >= 10:
-        scale = float(np.median(np.linalg.norm(points[:, None] - cams[None, ::max(1, len(cams) // 32)], axis=-1)))
+        scale = camera_point_distance(points, cams)
     else:
         scale = float(np.median(np.linalg.norm(cams - cams.mean(0), axis=-1))) or 1.0
     axes = _horizontal_axes(points, up, scale)
@@ -325,6 +312,7 @@ def fit_room_layout(scene, points: np.ndarray | None = None, cfg: LayoutConfig =
                 curves[f] = (offs, costs)
         if log is not None:
             log(f"[dars] room layout pass {rnd + 1}/{cfg.rounds + 1}: size {np.round(hi - lo, 2).tolist()}")
+    cmin_, coverage, _ = sweep.cost(layout, lo, hi)  # the fitted box
     for f in range(6):  # confidence from the coarse curve: the cost must rise on both sides of the minimum
         k, side = divmod(f, 2)
         sgn = 1.0 if side else -1.0
@@ -332,7 +320,6 @@ def fit_room_layout(scene, points: np.ndarray | None = None, cfg: LayoutConfig =
         offs, costs = curves[f]
         dist = np.abs(offs - ext)
         d0 = abs((hi if side else lo)[k] - ext)
-        cmin_ = float(sweep.cost(layout, lo, hi)[0])
         o = np.argsort(dist)
         o = o[np.isfinite(costs[o])]
         at = np.interp([d0 / cfg.rise_ratio, d0 * cfg.rise_ratio], dist[o], costs[o], left=np.nan, right=np.nan)
@@ -340,20 +327,21 @@ def fit_room_layout(scene, points: np.ndarray | None = None, cfg: LayoutConfig =
         rise_near, rise_far = (0.0 if not np.isfinite(r) else float(r) for r in (rise_near, rise_far))
         layout.contrast[f] = min(rise_near, rise_far)
         layout.confident[f] = layout.contrast[f] >= cfg.min_contrast
-    layout.lo, layout.hi, layout.curves = lo, hi, curves
-    layout.coverage = sweep.cost(layout, lo, hi)[1]
+    layout.lo, layout.hi, layout.curves, layout.coverage = lo, hi, curves, coverage
     layout.confident &= layout.coverage >= cfg.min_pixels
     return layout
 
 
 def layout_depth_targets(scene, layout: RoomLayout, regions=None) -> dict[str, torch.Tensor]:
     """Depth targets for the pixels of the photos' textureless regions whose ray leaves the box through a face
-    that counts; the format of :func:`toolkit.bounds.sparse_depth_targets` (depth along the camera axis)."""
+    that counts; the format of :func:`toolkit.bounds.sparse_depth_targets` (depth along the camera axis).
+
+    ``regions``: optional callable, view index -> label map or bool mask [H, W] of its textureless pixels (nonzero);
+    default :func:`toolkit.regions.textureless_regions` of the decoded photo."""
     from .regions import textureless_regions
 
-    cams = scene.cameras
-    c2w = cams.c2w.double()
-    Ks = cams.intrinsics().double()
+    c = scene.cameras
+    cams = Cameras(c.c2w.double(), c.fx.double(), c.fy.double(), c.cx.double(), c.cy.double(), c.width, c.height)
     conf = torch.as_tensor(layout.confident)
     out = {"views": [], "rows": [], "cols": [], "depth": []}
     for v in range(len(scene)):
@@ -361,12 +349,10 @@ def layout_depth_targets(scene, layout: RoomLayout, regions=None) -> dict[str, t
         rows, cols = np.nonzero(reg > 0)
         if not len(rows):
             continue
-        H, W = reg.shape
-        d = _view_rays(c2w[v:v + 1], Ks[v:v + 1], H, W)[0]
-        idx = torch.from_numpy(rows * W + cols)
-        t, face = box_depth(layout, c2w[v, :3, 3].expand(len(idx), 3), d[idx])
+        rays = generate_rays(cams, v, pixels=torch.from_numpy(np.stack([cols, rows], -1)))
+        t, face = box_depth(layout, rays.origins, rays.directions)
         ok = conf[face] & torch.isfinite(t)
-        z = t * (d[idx] @ (-c2w[v, :3, 2]))
+        z = t * rays.z_scale  # distance along the ray -> depth along the camera axis
         out["views"].append(torch.full((int(ok.sum()),), v, dtype=torch.int64))
         out["rows"].append(torch.from_numpy(rows)[ok].long())
         out["cols"].append(torch.from_numpy(cols)[ok].long())

@@ -165,7 +165,9 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
     known_bg = pri.light is not None and photos_have_transparency(scene)
     need_light = pri.light is None or known_bg
     want_planar = cfg.losses.planar > 0 and with_images
+    want_layout = cfg.losses.layout_depth > 0 and with_images
     planar_parts: list[tuple[int, np.ndarray]] = []
+    layout_regions: list[np.ndarray] = []  # textureless pixels (bool [H, W]) of each photo, for the layout targets
     gen = np.random.default_rng(cfg.seed)
     need_pixels = with_images or computed or need_light
     wcfg = WeightMapConfig()
@@ -175,8 +177,11 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         img = scene.load_image(i) if need_pixels else None  # float [3, H, W], the only full-precision copy
         if with_images:
             images.write(i, img.permute(1, 2, 0))
+        reg = textureless_regions(img) if want_planar or want_layout else None
+        if want_layout:
+            layout_regions.append(reg > 0)
         if want_planar:
-            reg = textureless_regions(img).reshape(-1)
+            reg = reg.reshape(-1)
             for k in range(1, int(reg.max()) + 1):
                 px = np.flatnonzero(reg == k)
                 if len(px) > PLANAR_PIXELS_PER_REGION:
@@ -229,16 +234,16 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         if not len(sparse["depth"]):
             sparse = None
     layout = None
-    if cfg.losses.layout_depth > 0 and with_images:
+    if want_layout:
         from ..bounds import triangulate_sparse_points
         from ..layout import fit_room_layout, layout_depth_targets
 
         if points is None:
             points = triangulate_sparse_points(scene, log=log)
         room = fit_room_layout(scene, points.points, log=log)
-        layout = layout_depth_targets(scene, room)
+        layout = layout_depth_targets(scene, room, regions=layout_regions.__getitem__)
         layout["layout"] = room.to_json()
-        faces = [n for n, f in room.to_json()["faces"].items() if f["confident"]]
+        faces = [n for n, f in layout["layout"]["faces"].items() if f["confident"]]
         log(f"[dars] room layout: box {np.round(room.hi - room.lo, 2).tolist()}, faces used: "
             f"{', '.join(faces) or 'none'}; {len(layout['depth'])} textureless pixels with a depth on it "
             f"(weight {cfg.losses.layout_depth:g})" + ("; none: the loss is off" if not len(layout["depth"]) else ""))

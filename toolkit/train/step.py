@@ -266,7 +266,8 @@ def sample_batch(state: TrainState, data: TrainData) -> Batch:
 
 
 SPARSE_DEPTH_RAYS = 256
-"""Rays per step through pixels with a triangulated depth (``losses.sparse_depth``), on top of ``batch_rays``."""
+"""Rays per step through pixels with a depth target, on top of ``batch_rays``: for each of ``losses.sparse_depth``
+(triangulated points) and ``losses.layout_depth`` (the room's box) that is on."""
 
 
 def _training_rays(state: TrainState, data: TrainData, views: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor):
