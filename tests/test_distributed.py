@@ -12,6 +12,7 @@ import torch
 from synthetic import make_scene
 from toolkit._checks import ConfigError
 from toolkit.distributed import Distributed, split_count
+from toolkit.layout import FACE_NAMES
 from toolkit.train import load_run, make_config, train
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,6 +79,21 @@ def test_two_process_gloo_training_stays_in_sync_and_evaluates(tiny, tmp_path):
     assert e.returncode == 0, e.stderr[-3000:]
     out = json.loads(e.stdout)
     assert out["eval"]["checkpoint_step"] == 10 and out["eval"]["views"] == 2
+
+
+def test_two_processes_share_rank_0s_room_box(tiny, tmp_path):
+    """--layout-depth under torchrun: rank 0 fits the room's box on every photo and the ranks take it (one fit, one
+    box), instead of each fitting its own on its shard."""
+    run = tmp_path / "lay"
+    p = _torchrun(2, "train", str(tiny), "--out", str(run), "--steps", "4", "--threads", "1", "--batch-rays", "512",
+                  "--layout-depth", "0.1", "--no-auto-priors")
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-4000:]
+    assert p.stderr.count("room layout: box") == 1, p.stderr[-3000:]  # rank 0 alone fits and reports
+    meta = json.loads((run / "config.json").read_text())
+    assert meta["world_size"] == 2 and set(meta["room_layout"]["faces"]) == set(FACE_NAMES)
+    assert meta["room_layout"]["photos"] == 16  # fitted on every photo, not on rank 0's shard of 8
+    dist = [json.loads(x) for x in (run / "log.jsonl").read_text().splitlines() if '"distributed"' in x]
+    assert dist and dist[0]["in_sync"]
 
 
 def _test_psnr(run_dir) -> float:

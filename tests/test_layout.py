@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -86,6 +87,7 @@ CFG = LayoutConfig(max_side=48, max_views=16)
 def test_a_box_room_with_paintings_is_recovered_and_its_walls_count():
     room = _BoxRoom()
     lay = fit_room_layout(room, room.points, CFG)
+    assert lay.photos == len(room)
     assert abs(abs(lay.axes[2] @ np.array([0, 0, 1.0])) - 1) < 1e-3  # up
     # the horizontal axes are the room's (either order and sign), not the world's
     assert max(abs(lay.axes[0] @ R[:, 0]), abs(lay.axes[0] @ R[:, 1])) > math.cos(math.radians(1.0))
@@ -130,11 +132,26 @@ def test_bad_layout_config_raises():
         LayoutConfig(min_pixels=1.0)
 
 
-def test_layout_depth_option_trains_logs_and_is_recorded(sample_scene_path, tmp_path, capsys):
-    """`dars train --layout-depth W`: the box fitted from the photos, the term logged each step, the weight and the
-    box in config.json. Off by default."""
-    import json
+def test_room_layout_json_round_trip_and_bad_record():
+    room = _BoxRoom(n=4, size=16)
+    lay = RoomLayout(origin=np.array([0.1, 0.2, 0.3]), axes=R.T.copy(), lo=LO, hi=HI,
+                     confident=np.array([1, 0, 1, 1, 0, 1], bool), contrast=np.linspace(0, 0.5, 6),
+                     coverage=np.linspace(0.1, 0.6, 6), photos=7)
+    back = RoomLayout.from_json(json.loads(json.dumps(lay.to_json())))
+    for k in ("origin", "axes", "lo", "hi", "confident", "photos"):
+        np.testing.assert_allclose(getattr(back, k), getattr(lay, k))
+    rays = generate_rays(room.cameras, [0])
+    np.testing.assert_allclose(box_depth(back, rays.origins, rays.directions)[0],
+                               box_depth(lay, rays.origins, rays.directions)[0])
+    bad = lay.to_json()
+    del bad["faces"]["ceiling"]
+    with pytest.raises(ConfigError, match="ceiling"):
+        RoomLayout.from_json(bad)
 
+
+def test_layout_depth_option_trains_logs_and_is_recorded(sample_scene_path, tmp_path, capsys, monkeypatch):
+    """`dars train --layout-depth W`: the box fitted from the photos, the term logged each step, the weight and the
+    box in config.json; --resume reuses the recorded box. Off by default."""
     from toolkit.cli import main
 
     run = tmp_path / "l"
@@ -149,3 +166,12 @@ def test_layout_depth_option_trains_logs_and_is_recorded(sample_scene_path, tmp_
     assert vals and all(math.isfinite(v) and v >= 0 for v in vals), vals
     assert main(["train", "--out", str(run), "--steps", "4", "--resume", "--layout-depth", "0.5", "--quiet"]) == 2
     assert "--layout-depth" in capsys.readouterr().err
+
+    # --resume takes the recorded box: the same targets, no second fit
+    def refit(*a, **k):
+        raise AssertionError("the box was fitted again on --resume")
+
+    monkeypatch.setattr("toolkit.layout.fit_room_layout", refit)
+    assert main(["train", "--out", str(run), "--steps", "4", "--resume", "--layout-depth", "0.1"]) == 0
+    assert "the box recorded in the run's config.json" in capsys.readouterr().err
+    assert json.load(open(run / "config.json"))["room_layout"] == meta["room_layout"]

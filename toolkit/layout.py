@@ -106,15 +106,35 @@ class RoomLayout:
     """float [6] each face's cost contrast (see :class:`LayoutConfig`)."""
     coverage: np.ndarray
     """float [6] the fraction of the sweep's pixels that leave the box through each face."""
+    photos: int = 0
+    """How many photos the box was fitted from (the sweep uses at most ``LayoutConfig.max_views`` of them)."""
     curves: list = field(default_factory=list)
     """Per face: (offsets, costs) of the last round's sweep, for plots."""
 
     def to_json(self) -> dict:
         return {"origin": self.origin.tolist(), "axes": self.axes.tolist(), "lo": self.lo.tolist(),
-                "hi": self.hi.tolist(), "faces": {n: {"confident": bool(c), "contrast": round(float(k), 4),
+                "hi": self.hi.tolist(), "photos": int(self.photos), "faces": {n: {"confident": bool(c), "contrast": round(float(k), 4),
                                                       "coverage": round(float(v), 4)}
                                                   for n, c, k, v in zip(FACE_NAMES, self.confident, self.contrast,
                                                                         self.coverage)}}
+
+    @classmethod
+    def from_json(cls, d: dict) -> "RoomLayout":
+        """The box :meth:`to_json` wrote (a run's ``config.json`` key ``room_layout``); ``curves`` are not kept.
+
+        Raises:
+            ConfigError: a record without the box's keys or faces."""
+        try:
+            faces = [d["faces"][n] for n in FACE_NAMES]
+            return cls(origin=np.asarray(d["origin"], np.float64).reshape(3),
+                       axes=np.asarray(d["axes"], np.float64).reshape(3, 3),
+                       lo=np.asarray(d["lo"], np.float64).reshape(3), hi=np.asarray(d["hi"], np.float64).reshape(3),
+                       confident=np.array([bool(f["confident"]) for f in faces]),
+                       contrast=np.array([float(f["contrast"]) for f in faces]),
+                       coverage=np.array([float(f["coverage"]) for f in faces]), photos=int(d.get("photos", 0)))
+        except (KeyError, TypeError, ValueError) as e:
+            raise ConfigError(f"not a room layout record (origin, axes, lo, hi and the faces {', '.join(FACE_NAMES)} "
+                              f"expected): {e!r}") from e
 
 
 def _frame_from_up(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -274,7 +294,7 @@ def fit_room_layout(scene, points: np.ndarray | None = None, cfg: LayoutConfig =
         hi = np.maximum(hi, np.percentile(qp, 99, axis=0))
     views = np.unique(np.linspace(0, len(scene) - 1, min(len(scene), cfg.max_views)).round().astype(int))
     layout = RoomLayout(origin=origin, axes=axes, lo=lo.copy(), hi=hi.copy(), confident=np.zeros(6, bool),
-                        contrast=np.zeros(6), coverage=np.zeros(6))
+                        contrast=np.zeros(6), coverage=np.zeros(6), photos=len(scene))
     sweep = _Sweep(scene, views, cfg)
 
     def sweep_face(f, offs):

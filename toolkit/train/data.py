@@ -66,7 +66,9 @@ class TrainData:
         sparse_depth: pixels with a known depth (``losses.sparse_depth`` > 0;
             :func:`toolkit.bounds.sparse_depth_targets`) or None.
         layout_depth: textureless-region pixels with a depth on the room's box (``losses.layout_depth`` > 0;
-            :func:`toolkit.layout.layout_depth_targets`) or None; ``layout`` holds the fitted box (JSON).
+            :func:`toolkit.layout.layout_depth_targets`) or None.
+        room_layout: the room's box (:meth:`toolkit.layout.RoomLayout.to_json`) when ``losses.layout_depth`` > 0,
+            whether or not any pixel got a depth on it; else None.
         planar: the large textureless regions of the photos (``losses.planar`` > 0;
             :func:`toolkit.regions.textureless_regions`) or None: ``{"views", "rows", "cols"}`` int64 [N] pixels
             (at most ``PLANAR_PIXELS_PER_REGION`` of each region, drawn at random), ``"offsets"`` int64 [K + 1]
@@ -87,6 +89,7 @@ class TrainData:
     sparse_depth: dict | None = None
     planar: dict | None = None
     layout_depth: dict | None = None
+    room_layout: dict | None = None
 
     @property
     def nbytes(self) -> int:
@@ -102,7 +105,7 @@ def grey_ambient_sh(mean_linear: float) -> torch.Tensor:
 
 
 def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | Path | None = None,
-                 cache_dir: str | Path | None = None, with_images: bool = True) -> TrainData:
+                 cache_dir: str | Path | None = None, with_images: bool = True, room_layout=None) -> TrainData:
     """Load training pixels and priors (labels, metal mask, W maps, light, colour) for ``scene``, one photo at a time.
 
     Priors come from the scene (provided labels and metal masks) or from the prior stages' outputs under
@@ -119,6 +122,8 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         cache_dir: keep the colour buffer in a memory-mapped file ``cache_dir/images.npy`` (created; a capture
             larger than RAM), or None for RAM.
         with_images: False: only what rendering needs (W maps, light); ``images`` is then an empty layout.
+        room_layout: the room's box (:class:`toolkit.layout.RoomLayout`) for ``losses.layout_depth``, already fitted
+            (a resumed run's, or rank 0's under torch.distributed); None: fitted here from ``scene``'s photos.
     """
     from ..edges import WeightMapConfig, normalise_weight_map, weight_map
     from ..regions import textureless_regions
@@ -233,17 +238,14 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
             f"(weight {cfg.losses.sparse_depth:g})" + ("; none: the loss is off" if not len(sparse["depth"]) else ""))
         if not len(sparse["depth"]):
             sparse = None
-    layout = None
+    layout, room = None, room_layout
     if want_layout:
-        from ..bounds import triangulate_sparse_points
-        from ..layout import fit_room_layout, layout_depth_targets
+        from ..layout import FACE_NAMES, layout_depth_targets
 
-        if points is None:
-            points = triangulate_sparse_points(scene, log=log)
-        room = fit_room_layout(scene, points.points, log=log)
+        if room is None:
+            room = fit_scene_layout(scene, log, points)
         layout = layout_depth_targets(scene, room, regions=layout_regions.__getitem__)
-        layout["layout"] = room.to_json()
-        faces = [n for n, f in layout["layout"]["faces"].items() if f["confident"]]
+        faces = [n for n, c in zip(FACE_NAMES, room.confident) if c]
         log(f"[dars] room layout: box {np.round(room.hi - room.lo, 2).tolist()}, faces used: "
             f"{', '.join(faces) or 'none'}; {len(layout['depth'])} textureless pixels with a depth on it "
             f"(weight {cfg.losses.layout_depth:g})" + ("; none: the loss is off" if not len(layout["depth"]) else ""))
@@ -263,7 +265,18 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
     return TrainData(scene=scene, images=images, labels=labels, metal=metal, weights=wm, distortion=dist,
                      albedo_gt=albedo_gt, l_env_init=l_env, l_env_source=l_src, colour_init=pri.colour,
                      priors_used=priors, sparse_depth=sparse, planar=planar,
-                     layout_depth=layout)
+                     layout_depth=layout, room_layout=room.to_json() if room is not None else None)
+
+
+def fit_scene_layout(scene: Scene, log=print, points=None):
+    """The room's box (:func:`toolkit.layout.fit_room_layout`) from ``scene``'s photos and sparse points
+    (``points``: :func:`toolkit.bounds.triangulate_sparse_points`'s result, triangulated here when None)."""
+    from ..bounds import triangulate_sparse_points
+    from ..layout import fit_room_layout
+
+    if points is None:
+        points = triangulate_sparse_points(scene, log=log)
+    return fit_room_layout(scene, points.points, log=log)
 
 
 def _layout_only(heights: torch.Tensor, widths: torch.Tensor) -> PackedViews:

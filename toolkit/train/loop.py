@@ -115,6 +115,25 @@ def _plot_curves(log_path: Path, out: Path) -> None:
     os.replace(tmp, out)
 
 
+def _room_layout(cfg: TrainConfig, scene, saved: dict | None, ddp, log):
+    """The room's box for ``--layout-depth`` when it need not be fitted from this process's photos: the box a resumed
+    run recorded (the same targets, without the minutes of a second fit), or, under torch.distributed, the box rank
+    0 fits on every photo (each rank would otherwise fit its own on its shard, and the ranks' targets would
+    disagree). None: off, or one process fits it in ``prepare_data``."""
+    if cfg.losses.layout_depth <= 0:
+        return None
+    from ..layout import RoomLayout
+
+    if saved and saved.get("room_layout"):
+        log("[dars] room layout: the box recorded in the run's config.json")
+        return RoomLayout.from_json(saved["room_layout"])
+    if ddp is None:
+        return None
+    from .data import fit_scene_layout
+
+    return ddp.broadcast_object(fit_scene_layout(scene, log) if ddp.is_main else None)
+
+
 def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume: bool = False, split: str = "train",
           progress_bar: bool = True, log=None, stop_at: int | None = None,
           priors_root: str | Path | None = None, force: bool = False, downscale: int = 1,
@@ -179,7 +198,8 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
     log("[dars] sampler: " + ("DARS (W-weighted rays, per-ray fine budgets, W-guided samples along the ray)"
                               if cfg.sampler.dars else "uniform pixels + hierarchical fine samples (DARS: --dars)"))
     local = (lambda c: c) if ddp is None else ddp.local_config  # this rank's share of the global batch
-    data = prepare_data(scene if ddp is None else ddp.shard(scene), local(cfg), log, priors_root)
+    room = _room_layout(cfg, scene, saved if resume else None, ddp, log)
+    data = prepare_data(scene if ddp is None else ddp.shard(scene), local(cfg), log, priors_root, room_layout=room)
     state = init_state(local(cfg), data)
     if ddp is not None:
         ddp.check_supported(cfg, data)
@@ -215,7 +235,7 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                               "priors": data.priors_used, "l_env_init": data.l_env_init.tolist(),
                               "l_env_source": data.l_env_source, "torch": torch.__version__,
                               "calibration": calibration, "world_size": world_size,
-                              "room_layout": (data.layout_depth or {}).get("layout")})
+                              "room_layout": data.room_layout})
 
     write_run_config(saved_calibration)
     log_path = out / "log.jsonl"
