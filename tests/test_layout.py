@@ -175,3 +175,40 @@ def test_layout_depth_option_trains_logs_and_is_recorded(sample_scene_path, tmp_
     assert main(["train", "--out", str(run), "--steps", "4", "--resume", "--layout-depth", "0.1"]) == 0
     assert "the box recorded in the run's config.json" in capsys.readouterr().err
     assert json.load(open(run / "config.json"))["room_layout"] == meta["room_layout"]
+
+
+def test_priors_layout_stage_writes_the_box_and_training_reads_it(tmp_path, capsys, monkeypatch):
+    """`dars priors layout SCENE --out DIR/layout` writes layout.json and layout.png; `dars train --layout-depth W
+    --priors DIR` takes that box (no second fit) and records it; a box from another frame is refused by name."""
+    from synthetic import make_scene
+    from toolkit.cli import main
+
+    scene = make_scene(tmp_path / "s", n_train=12, n_test=2)
+    pri = tmp_path / "p"
+    assert main(["priors", "layout", str(scene), "--out", str(pri / "layout")]) == 0
+    out = capsys.readouterr().out
+    assert "room box of" in out and "layout.png" in out
+    doc = json.load(open(pri / "layout" / "layout.json"))
+    assert doc["photos"] == 12 and len(doc["cameras"]) == 12 and set(doc["faces"]) == set(FACE_NAMES)
+    assert doc["ground_truth_inputs"] == "none" and set(doc["curves"]) <= set(FACE_NAMES)
+    from PIL import Image
+
+    assert Image.open(pri / "layout" / "layout.png").size[0] > 600
+
+    def refit(*a, **k):
+        raise AssertionError("training fitted the box again")
+
+    monkeypatch.setattr("toolkit.layout.fit_room_layout", refit)
+    run = tmp_path / "r"
+    assert main(["train", str(scene), "--out", str(run), "--steps", "2", "--batch-rays", "256", "--priors", str(pri),
+                 "--layout-depth", "0.1"]) == 0
+    assert "the box of `dars priors layout`" in capsys.readouterr().err
+    rec = json.load(open(run / "config.json"))["room_layout"]
+    assert rec["lo"] == doc["lo"] and rec["hi"] == doc["hi"]
+
+    doc["cameras"][next(iter(doc["cameras"]))][0] += 1.0  # as if fitted with the scene in another frame
+    (pri / "layout" / "layout.json").write_text(json.dumps(doc))
+    assert main(["train", str(scene), "--out", str(tmp_path / "r2"), "--steps", "2", "--batch-rays", "256",
+                 "--priors", str(pri), "--layout-depth", "0.1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "fitted in another frame" in err and "dars priors layout" in err

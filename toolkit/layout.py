@@ -31,6 +31,7 @@ No ground truth is read anywhere here.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -39,7 +40,7 @@ import torch.nn.functional as F
 from ._checks import ConfigError
 from .cameras import Cameras, generate_rays
 
-__all__ = ["LayoutConfig", "RoomLayout", "fit_room_layout", "layout_depth_targets", "box_depth"]
+__all__ = ["LayoutConfig", "RoomLayout", "fit_room_layout", "layout_depth_targets", "box_depth", "plot_layout"]
 
 FACE_NAMES = ("-a", "+a", "-b", "+b", "floor", "ceiling")
 """Faces in the order of :attr:`RoomLayout.offsets`: the two horizontal axes' low and high sides, then along up."""
@@ -381,3 +382,60 @@ def layout_depth_targets(scene, layout: RoomLayout, regions=None) -> dict[str, t
         return {"views": torch.zeros(0, dtype=torch.int64), "rows": torch.zeros(0, dtype=torch.int64),
                 "cols": torch.zeros(0, dtype=torch.int64), "depth": torch.zeros(0)}
     return {k: torch.cat(v) for k, v in out.items()}
+
+
+_FACE_COLOURS = np.array([[0.90, 0.30, 0.25], [0.95, 0.65, 0.15], [0.30, 0.70, 0.30], [0.25, 0.55, 0.90],
+                          [0.60, 0.40, 0.80], [0.20, 0.80, 0.80]])
+"""A colour per face (:data:`FACE_NAMES` order) for :func:`plot_layout`."""
+
+
+def plot_layout(scene, layout: RoomLayout, path, views: int = 6) -> None:
+    """A figure a person can judge the box by, written to ``path`` (PNG, atomically).
+
+    Top row: each face's sweep (cost against the face's coordinate; the chosen offset marked; whether the face
+    counts, and its contrast and share of pixels). Bottom row: ``views`` photos spread over the capture, each pixel
+    tinted by the face its ray leaves the box through (faces that count only), with the box's edges drawn where the
+    face changes: on a good fit they run along the room's corners and the walls' feet."""
+    from .report import _plt, _save
+
+    plt = _plt()
+    n = max(1, min(int(views), len(scene)))
+    fig, axs = plt.subplots(2, max(6, n), figsize=(2.6 * max(6, n), 5.6), squeeze=False)
+    for f, name in enumerate(FACE_NAMES):
+        ax = axs[0, f]
+        curve = layout.curves[f] if f < len(layout.curves) and layout.curves[f] is not None else None
+        if curve is not None:
+            offs, costs = (np.asarray(c, np.float64) for c in curve)
+            ok = np.isfinite(costs)
+            ax.plot(offs[ok], costs[ok], ".-", color=_FACE_COLOURS[f], lw=1)
+            ax.axvline((layout.hi if f % 2 else layout.lo)[f // 2], color="k", lw=0.8, ls="--")
+        ax.set_title(f"{name}: {'counts' if layout.confident[f] else 'no face'}\n"
+                     f"contrast {layout.contrast[f]:.2f}, px {100 * layout.coverage[f]:.0f} %", fontsize=8)
+        ax.tick_params(labelsize=6)
+        ax.ticklabel_format(axis="y", useOffset=False)
+        ax.set_xlabel("face coordinate (scene units)", fontsize=6)
+    axs[0, 0].set_ylabel("photometric cost", fontsize=7)
+    for j in range(6, axs.shape[1]):
+        axs[0, j].axis("off")
+    conf = torch.as_tensor(layout.confident)
+    for j, v in enumerate(np.unique(np.linspace(0, len(scene) - 1, n).round().astype(int))):
+        img = scene.load_image(int(v)).permute(1, 2, 0).clamp(0, 1).numpy()
+        h, w = img.shape[:2]
+        rays = generate_rays(scene.cameras, [int(v)])
+        _, face = box_depth(layout, rays.origins.double(), rays.directions.double())
+        face = face.reshape(h, w).numpy()
+        tint = np.where(conf.numpy()[face][..., None], _FACE_COLOURS[face], img)
+        out = 0.6 * img + 0.4 * tint
+        edge = np.zeros((h, w), bool)
+        edge[:, 1:] |= face[:, 1:] != face[:, :-1]
+        edge[1:, :] |= face[1:, :] != face[:-1, :]
+        out[edge] = 1.0
+        axs[1, j].imshow(out)
+        axs[1, j].set_title(f"photo {int(v)}", fontsize=8)
+    for ax in axs[1]:
+        ax.axis("off")
+    size = np.round(layout.hi - layout.lo, 2).tolist()
+    fig.suptitle(f"room box {size} (scene units), fitted on {layout.photos} photos; tinted: faces that count",
+                 fontsize=9)
+    fig.tight_layout()
+    _save(fig, Path(path))

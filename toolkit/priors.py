@@ -407,6 +407,72 @@ def compute_priors(scene: "Scene", root: str | os.PathLike, segmenter: str | os.
     return rec
 
 
+# ============================================================================ layout (the room's box)
+def priors_layout(scene, out_dir=None, cfg=None, force: bool = False, log=None) -> dict:
+    """Fit the room's box (:func:`toolkit.layout.fit_room_layout`) and write ``layout.json`` and ``layout.png``
+    (each face's sweep, and photos tinted by the face their pixels' rays leave through); returns the JSON.
+
+    ``dars train --layout-depth W --priors DIR`` reads ``DIR/layout/layout.json`` instead of fitting the box again
+    (:func:`read_layout`), so several runs on one scene share one fit. The record holds every photo's camera centre
+    so that a box fitted in another frame (another ``--no-upright``) or on other photos is refused.
+    """
+    from .bounds import triangulate_sparse_points
+    from .layout import FACE_NAMES, LayoutConfig, fit_room_layout, plot_layout
+
+    cfg = cfg or LayoutConfig()
+    out = prepare_out_dir(scene, "layout", out_dir, ["layout.json", "layout.png"], force)
+    points = triangulate_sparse_points(scene, log=log)
+    room = fit_room_layout(scene, points.points, cfg, log=log)
+    d = room.to_json()
+    d["curves"] = {n: {"offsets": np.asarray(c[0]).tolist(),
+                       "costs": [float(x) if np.isfinite(x) else None for x in np.asarray(c[1])]}
+                   for n, c in zip(FACE_NAMES, room.curves) if c is not None}
+    d.update(scene=str(scene.source), split=scene.split, config=asdict(cfg), sparse_points=int(len(points.points)),
+             cameras={f.key: [round(float(x), 6) for x in c]
+                      for f, c in zip(scene.frames, scene.cameras.c2w[:, :3, 3].double().tolist())},
+             usage="dars train --layout-depth W --priors DIR; toolkit.layout.RoomLayout.from_json",
+             ground_truth_inputs="none")
+    write_json(out.file("layout.json"), d)
+    plot_layout(scene, room, out.file("layout.png"))
+    out.finish({"scene": str(scene.source), "split": scene.split})
+    d["out"] = str(out.path)
+    return d
+
+
+def read_layout(scene: "Scene", priors_root: str | os.PathLike | None = None):
+    """The room's box of ``dars priors layout`` (``<priors>/layout/layout.json``) as a
+    :class:`toolkit.layout.RoomLayout`, or None when there is none.
+
+    Raises:
+        DarsError: a damaged record, or one fitted on other photos or in another frame than ``scene``'s (a photo of
+            ``scene`` it does not list, or a camera more than 0.1 % of the capture's extent from where it was)."""
+    from .layout import RoomLayout
+
+    path = priors_path(scene, "layout", priors_root) / "layout.json"
+    if not path.is_file():
+        return None
+    d = read_json(path, "priors layout.json", _rerun("layout", scene))
+    cams = d.get("cameras")
+    if not isinstance(cams, dict):
+        raise DarsError(f"priors layout.json {path} lists no camera centres; {_rerun('layout', scene)}")
+    missing = [f.key for f in scene.frames if f.key not in cams]
+    if missing:
+        raise DarsError(f"{path} was fitted on other photos: it has no frame {missing[:3]}"
+                        f"{' ...' if len(missing) > 3 else ''}; {_rerun('layout', scene)}")
+    have = scene.cameras.c2w[:, :3, 3].double().numpy()
+    rec = np.array([cams[f.key] for f in scene.frames], np.float64).reshape(-1, 3)
+    extent = float(np.ptp(have, axis=0).max()) if len(have) > 1 else 1.0
+    off = float(np.abs(rec - have).max())
+    if off > 1e-3 * max(extent, 1e-3):
+        raise DarsError(f"{path} was fitted in another frame: a camera lies {off:.3g} scene units from where this "
+                        "scene puts it (the scene loaded with another --no-upright, or its poses changed); "
+                        + _rerun("layout", scene))
+    try:
+        return RoomLayout.from_json(d)
+    except ConfigError as e:
+        raise DarsError(f"priors layout.json {path}: {e}; {_rerun('layout', scene)}") from e
+
+
 # ============================================================================ light (stage 4)
 OUT_OF_DOMAIN_RGBA = ("the photos are RGBA with transparency (an object on a known background): the light network "
                       "was trained on whole photos of rooms and reads the background colour as light, so this "

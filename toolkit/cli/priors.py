@@ -1,4 +1,4 @@
-"""``dars priors weights|segment|colour|light|sh-probe`` — the prior stages on a scene (:mod:`toolkit.priors`).
+"""``dars priors weights|segment|colour|light|layout|sh-probe`` — the prior stages on a scene (:mod:`toolkit.priors`).
 
 Outputs go to ``--out DIR`` or ``<scene>/priors/<stage>`` under the one output-folder policy (:mod:`toolkit.outputs`:
 ``dars_manifest.json`` lists what dars wrote; files it did not write are never overwritten; ``--force`` writes beside
@@ -21,7 +21,7 @@ _LM = ["(0,0)", "(1,-1)", "(1,0)", "(1,1)", "(2,-2)", "(2,-1)", "(2,0)", "(2,1)"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("priors", help="prior stages: weights, segment, colour, light, sh-probe",
+    p = sub.add_parser("priors", help="prior stages: weights, segment, colour, light, layout, sh-probe",
                        description="Prior stages on a scene; outputs go next to the scene unless --out.")
     stages = p.add_subparsers(dest="priors_command", metavar="STAGE")
     stages.required = True
@@ -69,6 +69,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="fix this image's gain to 1 instead (overrides --gauge)")
     q.set_defaults(func=cmd_colour)
     _add_light(stages)
+
+    q = stages.add_parser("layout", help="the room's box (walls, floor, ceiling) from the posed photos, by a plane sweep",
+                          description="Fit the room's box (toolkit.layout) and write priors/layout/layout.json and "
+                                      "layout.png (each face's sweep; photos tinted by face). `dars train "
+                                      "--layout-depth W --priors DIR` reads it instead of fitting the box again.")
+    _common(q, "layout")
+    q.add_argument("--no-upright", action="store_true",
+                   help="keep the input's orientation, as `dars train --no-upright` (default: as dars train loads it)")
+    q.set_defaults(func=cmd_layout)
     _add_sh_probe(stages)
 
 
@@ -240,6 +249,27 @@ def cmd_light(args: argparse.Namespace) -> int:
         parts.append(f"baseline image mean colour {ev['baseline_mean_colour']:.4f}")
         print("Env-light L2 vs GT (eq. 36): " + "; ".join(parts))
     print(f"-> {Path(info['out']) / 'light.json'}")
+    return 0
+
+
+def cmd_layout(args: argparse.Namespace) -> int:
+    from ..priors import priors_layout
+    from ..scene import load_scene
+
+    scene = load_scene(args.scene, args.split, downscale=args.downscale, upright="off" if args.no_upright else "auto")
+    log = None if args.json else (lambda m: print(m, file=sys.stderr))
+    with _out(args, scene, "layout").guard() as out:
+        d = priors_layout(scene, out, log=log)
+    if args.json:
+        print_json(d)
+        return 0
+    size = [round(b - a, 2) for a, b in zip(d["lo"], d["hi"])]
+    print(f"room box of {d['scene']} [{d['split']}, {d['photos']} photos, {d['sparse_points']} sparse points]: "
+          f"{size} scene units")
+    for name, f in d["faces"].items():
+        print(f"  {name:>8}: {'counts' if f['confident'] else 'no face'}  (contrast {f['contrast']:.2f}, "
+              f"{100 * f['coverage']:.0f} % of the pixels)")
+    print(f"-> {Path(d['out']) / 'layout.json'}, {Path(d['out']) / 'layout.png'}")
     return 0
 
 

@@ -135,7 +135,7 @@ def check_priors_root(priors_root: str | os.PathLike | None, option: str = "--pr
     if not p.is_dir():
         raise DarsError(f"{option} {p}: folder not found; give the folder the prior stages wrote (default "
                         f"SCENE/priors, made by `dars priors STAGE SCENE`), or leave {option} out")
-    stages = ("segment", "weights", "light", "colour")
+    stages = ("segment", "weights", "light", "colour", "layout")
     if not any((p / s).is_dir() for s in stages):
         here = [s for s in stages if p.name == s]
         hint = f" ({p} itself looks like the '{here[0]}' stage: give its parent {p.parent})" if here else ""

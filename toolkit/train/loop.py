@@ -115,18 +115,25 @@ def _plot_curves(log_path: Path, out: Path) -> None:
     os.replace(tmp, out)
 
 
-def _room_layout(cfg: TrainConfig, scene, saved: dict | None, ddp, log):
+def _room_layout(cfg: TrainConfig, scene, saved: dict | None, ddp, log, priors_root):
     """The room's box for ``--layout-depth`` when it need not be fitted from this process's photos: the box a resumed
-    run recorded (the same targets, without the minutes of a second fit), or, under torch.distributed, the box rank
-    0 fits on every photo (each rank would otherwise fit its own on its shard, and the ranks' targets would
-    disagree). None: off, or one process fits it in ``prepare_data``."""
+    run recorded (the same targets, without the minutes of a second fit), the box of ``dars priors layout`` in the
+    run's priors folder or the scene's own, or, under torch.distributed, the box rank 0 fits on every photo (each rank would otherwise fit
+    its own on its shard, and the ranks' targets would disagree). None: off, or one process fits it in
+    ``prepare_data``."""
     if cfg.losses.layout_depth <= 0:
         return None
     from ..layout import RoomLayout
+    from ..priors import priors_path, read_layout
 
     if saved and saved.get("room_layout"):
         log("[dars] room layout: the box recorded in the run's config.json")
         return RoomLayout.from_json(saved["room_layout"])
+    for root in dict.fromkeys([priors_root, None]):  # the run's priors, then the scene's own priors/ folder
+        room = read_layout(scene, root)
+        if room is not None:
+            log(f"[dars] room layout: the box of `dars priors layout` ({priors_path(scene, 'layout', root)})")
+            return room
     if ddp is None:
         return None
     from .data import fit_scene_layout
@@ -198,7 +205,7 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
     log("[dars] sampler: " + ("DARS (W-weighted rays, per-ray fine budgets, W-guided samples along the ray)"
                               if cfg.sampler.dars else "uniform pixels + hierarchical fine samples (DARS: --dars)"))
     local = (lambda c: c) if ddp is None else ddp.local_config  # this rank's share of the global batch
-    room = _room_layout(cfg, scene, saved if resume else None, ddp, log)
+    room = _room_layout(cfg, scene, saved if resume else None, ddp, log, priors_root)
     data = prepare_data(scene if ddp is None else ddp.shard(scene), local(cfg), log, priors_root, room_layout=room)
     state = init_state(local(cfg), data)
     if ddp is not None:
