@@ -116,11 +116,10 @@ class RoomLayout:
     """Per face: (offsets, costs) of the last round's sweep, for plots."""
 
     def to_json(self) -> dict:
+        faces = {n: {"confident": bool(c), "contrast": round(float(k), 4), "coverage": round(float(v), 4)}
+                 for n, c, k, v in zip(FACE_NAMES, self.confident, self.contrast, self.coverage)}
         return {"origin": self.origin.tolist(), "axes": self.axes.tolist(), "lo": self.lo.tolist(),
-                "hi": self.hi.tolist(), "photos": int(self.photos), "faces": {n: {"confident": bool(c), "contrast": round(float(k), 4),
-                                                      "coverage": round(float(v), 4)}
-                                                  for n, c, k, v in zip(FACE_NAMES, self.confident, self.contrast,
-                                                                        self.coverage)}}
+                "hi": self.hi.tolist(), "photos": int(self.photos), "faces": faces}
 
     @classmethod
     def from_json(cls, d: dict) -> "RoomLayout":
@@ -420,14 +419,14 @@ def plot_layout(scene, layout: RoomLayout, path, views: int = 6) -> None:
     axs[0, 0].set_ylabel("photometric cost", fontsize=7)
     for j in range(6, axs.shape[1]):
         axs[0, j].axis("off")
-    conf = torch.as_tensor(layout.confident)
+    conf = np.asarray(layout.confident, bool)
     for j, v in enumerate(np.unique(np.linspace(0, len(scene) - 1, n).round().astype(int))):
         img = scene.load_image(int(v)).permute(1, 2, 0).clamp(0, 1).numpy()
         h, w = img.shape[:2]
         rays = generate_rays(scene.cameras, [int(v)])
         _, face = box_depth(layout, rays.origins.double(), rays.directions.double())
         face = face.reshape(h, w).numpy()
-        tint = np.where(conf.numpy()[face][..., None], _FACE_COLOURS[face], img)
+        tint = np.where(conf[face][..., None], _FACE_COLOURS[face], img)
         out = 0.6 * img + 0.4 * tint
         edge = np.zeros((h, w), bool)
         edge[:, 1:] |= face[:, 1:] != face[:, :-1]

@@ -70,7 +70,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.set_defaults(func=cmd_colour)
     _add_light(stages)
 
-    q = stages.add_parser("layout", help="the room's box (walls, floor, ceiling) from the posed photos, by a plane sweep",
+    q = stages.add_parser("layout",
+                          help="the room's box (walls, floor, ceiling) from the posed photos, by a plane sweep",
                           description="Fit the room's box (toolkit.layout) and write priors/layout/layout.json and "
                                       "layout.png (each face's sweep; photos tinted by face). `dars train "
                                       "--layout-depth W --priors DIR` reads it instead of fitting the box again.")

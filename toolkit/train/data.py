@@ -240,10 +240,10 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
             sparse = None
     layout, room = None, room_layout
     if want_layout:
-        from ..layout import FACE_NAMES, layout_depth_targets
+        from ..layout import FACE_NAMES, fit_room_layout, layout_depth_targets
 
-        if room is None:
-            room = fit_scene_layout(scene, log, points)
+        if room is None:  # the sparse-depth loss's points when it triangulated them, else triangulated here
+            room = fit_room_layout(scene, None if points is None else points.points, log=log)
         layout = layout_depth_targets(scene, room, regions=layout_regions.__getitem__)
         faces = [n for n, c in zip(FACE_NAMES, room.confident) if c]
         log(f"[dars] room layout: box {np.round(room.hi - room.lo, 2).tolist()}, faces used: "
@@ -266,17 +266,6 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
                      albedo_gt=albedo_gt, l_env_init=l_env, l_env_source=l_src, colour_init=pri.colour,
                      priors_used=priors, sparse_depth=sparse, planar=planar,
                      layout_depth=layout, room_layout=room.to_json() if room is not None else None)
-
-
-def fit_scene_layout(scene: Scene, log=print, points=None):
-    """The room's box (:func:`toolkit.layout.fit_room_layout`) from ``scene``'s photos and sparse points
-    (``points``: :func:`toolkit.bounds.triangulate_sparse_points`'s result, triangulated here when None)."""
-    from ..bounds import triangulate_sparse_points
-    from ..layout import fit_room_layout
-
-    if points is None:
-        points = triangulate_sparse_points(scene, log=log)
-    return fit_room_layout(scene, points.points, log=log)
 
 
 def _layout_only(heights: torch.Tensor, widths: torch.Tensor) -> PackedViews:

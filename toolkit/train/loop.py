@@ -118,12 +118,12 @@ def _plot_curves(log_path: Path, out: Path) -> None:
 def _room_layout(cfg: TrainConfig, scene, saved: dict | None, ddp, log, priors_root):
     """The room's box for ``--layout-depth`` when it need not be fitted from this process's photos: the box a resumed
     run recorded (the same targets, without the minutes of a second fit), the box of ``dars priors layout`` in the
-    run's priors folder or the scene's own, or, under torch.distributed, the box rank 0 fits on every photo (each rank would otherwise fit
-    its own on its shard, and the ranks' targets would disagree). None: off, or one process fits it in
-    ``prepare_data``."""
+    run's priors folder or the scene's own, or, under torch.distributed, the box rank 0 fits on every photo (each
+    rank would otherwise fit its own on its shard, and the ranks' targets would disagree). None: off, or one
+    process fits it in ``prepare_data``."""
     if cfg.losses.layout_depth <= 0:
         return None
-    from ..layout import RoomLayout
+    from ..layout import RoomLayout, fit_room_layout
     from ..priors import priors_path, read_layout
 
     if saved and saved.get("room_layout"):
@@ -136,9 +136,7 @@ def _room_layout(cfg: TrainConfig, scene, saved: dict | None, ddp, log, priors_r
             return room
     if ddp is None:
         return None
-    from .data import fit_scene_layout
-
-    return ddp.broadcast_object(fit_scene_layout(scene, log) if ddp.is_main else None)
+    return ddp.broadcast_object(fit_room_layout(scene, log=log) if ddp.is_main else None)
 
 
 def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume: bool = False, split: str = "train",
