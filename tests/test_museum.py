@@ -59,6 +59,18 @@ def test_manifest_forms(tiny, tmp_path):
     assert scene in stages[1].argv and scene in stages[2].argv  # the later stages read the posed scene
 
 
+def test_layout_prior_stage_is_fitted_in_the_frame_training_loads(tiny, tmp_path):
+    (job,) = read_manifest(_write(tmp_path / "m.json", [{"name": "r", "scene": str(tiny), "steps": 5,
+                                                          "priors": ["layout", "weights"],
+                                                          "train_args": ["--layout-depth", "0.1", "--no-upright"]}]))
+    stages = scene_stages(job, tmp_path / "out" / "r")
+    assert [s.name for s in stages][:2] == ["priors-weights", "priors-layout"]  # PRIOR_STAGES order
+    lay = stages[1].argv
+    assert lay[3:5] == ["priors", "layout"] and "--no-upright" in lay
+    train = stages[2].argv
+    assert "--priors" in train and train[train.index("--priors") + 1] == str(tmp_path / "out" / "r" / "priors")
+
+
 def test_train_many_runs_and_resumes(tiny, tmp_path, capsys):
     man = _write(tmp_path / "museum.json", [{
         "name": "room1", "scene": str(tiny), "steps": 60, "priors": ["weights"],

@@ -49,8 +49,9 @@ from ._checks import DarsError
 
 __all__ = ["SceneJob", "read_manifest", "run_museum", "scene_stages", "write_summary", "FIELDS", "PRIOR_STAGES"]
 
-PRIOR_STAGES = ("segment", "weights", "light", "colour")
-"""The prior stages a scene may ask for, in the order they run (weights use the segment labels)."""
+PRIOR_STAGES = ("segment", "weights", "light", "colour", "layout")
+"""The prior stages a scene may ask for, in the order they run (weights use the segment labels; ``layout`` is the room's
+box, which ``dars train --layout-depth W`` reads instead of fitting it again)."""
 
 FIELDS = {"name": "a folder name", "scene": "a scene path", "photos": "a folder of photos",
           "steps": "a whole number > 0", "minutes": "a number > 0", "preset": "fast or paper",
@@ -291,9 +292,12 @@ def scene_stages(job: SceneJob, home: Path, threads: int = 0) -> list[Stage]:
         out = home / "priors" / s
         done = _manifest_complete(out) and not later
         later = later or not done
+        extra = list(job.priors_args.get(s, []))
+        if s == "layout" and "--no-upright" in job.train_args and "--no-upright" not in extra:
+            extra.append("--no-upright")  # the box must be fitted in the frame training loads
         stages.append(Stage(f"priors-{s}", None if done else
-                            _dars("priors", s, scene, "--out", str(out), "--force",
-                                  *job.priors_args.get(s, [])), "complete" if done else ""))
+                            _dars("priors", s, scene, "--out", str(out), "--force", *extra),
+                            "complete" if done else ""))
     run = home / "run"
     step, target = _checkpoint_step(run), _target_steps(job, run)
     length = ["--steps", str(job.steps)] if job.steps else ["--minutes", f"{job.minutes:g}"]
