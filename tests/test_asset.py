@@ -45,7 +45,10 @@ def _sphere(radius=0.5):
 
 
 def test_build_asset_from_callables():
-    asset = build_asset(_sphere(), AssetConfig(resolution=32, faces=600, texture=64, level=100.0))
+    lines = []
+    asset = build_asset(_sphere(), AssetConfig(resolution=32, faces=600, texture=64, level=100.0), log=lines.append)
+    assert [m.split(" faces")[0] for m in lines[:1]] == [f"[dars] UV atlas of {asset.mesh.num_faces}"]  # xatlas is silent
+    assert len(lines) == 2 and lines[1].startswith("[dars] UV atlas done in")
     assert 0 < asset.mesh.num_faces <= 600 * 1.02 and asset.uvmesh.num_faces == asset.mesh.num_faces
     assert abs(np.median(np.linalg.norm(asset.mesh.vertices, axis=1)) - 0.5) < 2 / 32
     assert asset.textures.base_color.shape[:2] == (64, 64) and set(np.unique(asset.uvmesh.face_labels)) == {3}

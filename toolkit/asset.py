@@ -211,8 +211,9 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
     return mesh, stats
 
 
-def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig()) -> tuple[UVMesh, PBRTextures, dict]:
-    """The bake half: UV-unwrap ``mesh``, label its faces and bake PBR textures from ``material_fn``.
+def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=None) -> tuple[UVMesh, PBRTextures, dict]:
+    """The bake half: UV-unwrap ``mesh``, label its faces and bake PBR textures from ``material_fn``; ``log``: an
+    optional callable told when the unwrap (xatlas, which reports no progress) starts and ends.
 
     Returns:
         (uvmesh, textures, statistics ``texture``, ``supersample``, ``uv_vertices``, timings, ``chart_coverage``,
@@ -221,8 +222,13 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig()) -> tupl
     from .bake import BakeConfig, UnwrapConfig, bake_pbr_textures, label_faces, unwrap_uv
 
     t0 = time.perf_counter()
+    if log is not None:
+        log(f"[dars] UV atlas of {mesh.num_faces} faces (xatlas, no progress to show; a room's mesh can take "
+            "minutes) ...")
     uvmesh = unwrap_uv(mesh, UnwrapConfig(texture_size=cfg.texture))
     t1 = time.perf_counter()
+    if log is not None:
+        log(f"[dars] UV atlas done in {t1 - t0:.0f} s")
     uvmesh = label_faces(uvmesh, material_fn, device=cfg.device)
     textures = bake_pbr_textures(uvmesh, material_fn, BakeConfig(size=cfg.texture, supersample=cfg.supersample,
                                                                   ao_samples=cfg.ao_samples, device=cfg.device))
@@ -232,19 +238,20 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig()) -> tupl
     return uvmesh, textures, stats
 
 
-def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = AssetConfig()) -> Asset:
+def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = AssetConfig(), log=None) -> Asset:
     """Field → mesh → baked textures: :func:`build_mesh` then :func:`bake_mesh`.
 
     Args:
         run: a run directory, a loaded :class:`~toolkit.train.run.Run` or :class:`~toolkit.train.run.FieldCallables`.
         cfg: the options.
+        log: optional callable for progress lines (:func:`bake_mesh`).
 
     Raises:
         DarsError: no such run, or an empty mesh.
     """
     field = asset_field(run)
     mesh, stats = build_mesh(field, cfg)
-    uvmesh, textures, bake_stats = bake_mesh(mesh, field.material_fn, cfg)
+    uvmesh, textures, bake_stats = bake_mesh(mesh, field.material_fn, cfg, log=log)
     stats["bake"] = bake_stats
     return Asset(mesh, uvmesh, textures, field.sh, stats)
 

@@ -19,7 +19,7 @@ import argparse
 from pathlib import Path
 
 from .._checks import DarsError
-from ._common import COUNT, POSITIVE, number, print_json
+from ._common import COUNT, POSITIVE, log, number, print_json
 
 MESH_FILES = ("mesh.ply", "mesh_stats.json")
 BAKE_FILES = ("base_color.png", "orm.png", "normal.png", "mesh_uv.obj", "bake_stats.json")
@@ -162,7 +162,7 @@ def cmd_bake(args: argparse.Namespace) -> int:
     out = _out(args, "bake", BAKE_FILES)
     mesh = load_mesh(mesh_path)
     field = asset_field(args.run)
-    uvmesh, textures, stats = bake_mesh(mesh, field.material_fn, cfg)
+    uvmesh, textures, stats = bake_mesh(mesh, field.material_fn, cfg, log=log)
     with out:
         write_textures(textures, out.path)
         write_uv_obj(uvmesh, out.path / "mesh_uv.obj")
@@ -179,7 +179,7 @@ def cmd_export_asset(args: argparse.Namespace) -> int:
     cfg = asset_config(args)
     _require_run(args.run)
     out = _out(args, "", ASSET_FILES)
-    asset = build_asset(args.run, cfg)
+    asset = build_asset(args.run, cfg, log=log)
     stats = asset.stats
     with out:
         save_mesh(asset.mesh, out.path / "mesh.ply")
