@@ -74,11 +74,13 @@ def test_sample_texture_gltf_convention():
 
 
 # ------------------------------------------------------------------------------------------------ unwrap + tangents
-def test_unwrap_uv_atlas_properties():
+@pytest.mark.parametrize("pieces", [None, 150])  # one mesh, or cut into spatial pieces of <= 150 faces
+def test_unwrap_uv_atlas_properties(pieces):
     mesh = sphere_mesh()
     mesh = Mesh(mesh.vertices, mesh.faces, mesh.normals, labels=(mesh.vertices[:, 2] > 0).astype(np.uint8) * 5)
-    uvm = unwrap_uv(mesh, UnwrapConfig(texture_size=256))
+    uvm = unwrap_uv(mesh, UnwrapConfig(texture_size=256, max_piece_faces=pieces))
     assert uvm.num_faces == mesh.num_faces and uvm.num_vertices >= mesh.num_vertices
+    assert np.array_equal(uvm.vertices[uvm.faces], mesh.vertices[mesh.faces])  # every face kept, in its order
     assert uvm.uvs.min() >= 0 and uvm.uvs.max() <= 1
     assert np.array_equal(uvm.vertices, mesh.vertices[uvm.vmapping])  # split vertices keep their source
     assert np.array_equal(uvm.normals, mesh.normals[uvm.vmapping])  # normals continuous across seams

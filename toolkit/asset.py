@@ -223,8 +223,7 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
 
     t0 = time.perf_counter()
     if log is not None:
-        log(f"[dars] UV atlas of {mesh.num_faces} faces (xatlas, no progress to show; a room's mesh can take "
-            "minutes) ...")
+        log(f"[dars] UV atlas of {mesh.num_faces} faces (xatlas, which shows no progress) ...")
     uvmesh = unwrap_uv(mesh, UnwrapConfig(texture_size=cfg.texture))
     t1 = time.perf_counter()
     if log is not None:
