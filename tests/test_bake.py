@@ -81,6 +81,9 @@ def test_unwrap_uv_atlas_properties(pieces):
     uvm = unwrap_uv(mesh, UnwrapConfig(texture_size=256, max_piece_faces=pieces))
     assert uvm.num_faces == mesh.num_faces and uvm.num_vertices >= mesh.num_vertices
     assert np.array_equal(uvm.vertices[uvm.faces], mesh.vertices[mesh.faces])  # every face kept, in its order
+    if pieces:
+        with pytest.raises(ConfigError, match="max_piece_faces=0"):
+            unwrap_uv(mesh, UnwrapConfig(max_piece_faces=0))
     assert uvm.uvs.min() >= 0 and uvm.uvs.max() <= 1
     assert np.array_equal(uvm.vertices, mesh.vertices[uvm.vmapping])  # split vertices keep their source
     assert np.array_equal(uvm.normals, mesh.normals[uvm.vmapping])  # normals continuous across seams
