@@ -141,33 +141,30 @@ def run_case(name: str, workdir: Path) -> dict:
         out["chamfer_frac"] = rep.error.mean_fraction
         out["hausdorff_frac"] = rep.error.max_fraction
         out["note"] = f"chamfer {rep.error.mean_fraction:.2e}, hausdorff {rep.error.max_fraction:.2e} of diagonal"
-    elif name == "unwrap_100k":
-        mesh = bumpy_sphere(100_000)
-        base = _rss_mb()
-        t0 = time.perf_counter()
-        uvm = unwrap_uv(mesh, UnwrapConfig(texture_size=2048))
-        out["seconds"] = time.perf_counter() - t0
-        out["peak_rss_mb"] = _rss_mb() - base
-        out["faces"] = uvm.num_faces
-        np.savez(workdir / "uvmesh.npz", **{k: getattr(uvm, k) for k in ("vertices", "faces", "uvs", "normals",
-                                                                          "tangents", "vmapping")})
-        out["note"] = f"xatlas, {uvm.num_vertices} split vertices"
-    elif name.startswith("unwrap_noisy"):
-        # a surface as noisy as a trained room's: xatlas makes a chart of every few faces and merges them in a time
-        # superlinear in their count per piece; "one" is the baseline (one piece), "pieces" the default cut
-        from toolkit.mesh import Mesh, compute_vertex_normals
+    elif name.startswith("unwrap"):
+        if name == "unwrap_100k":
+            mesh, cfg = bumpy_sphere(100_000), UnwrapConfig(texture_size=2048)
+        else:
+            # a surface as noisy as a trained room's: xatlas makes a chart of every few faces and merges them in a
+            # time superlinear in their count per piece; "one" is the baseline (one piece), "pieces" the default cut
+            from toolkit.mesh import Mesh, compute_vertex_normals
 
-        m = bumpy_sphere(20_000)
-        v = m.vertices + 0.01 * np.random.default_rng(0).standard_normal(m.vertices.shape)
-        mesh = Mesh(v.astype(np.float32), m.faces, compute_vertex_normals(v, m.faces))
-        cfg = UnwrapConfig(texture_size=1024, max_piece_faces=None if name.endswith("one") else 5000)
+            m = bumpy_sphere(20_000)
+            v = m.vertices + 0.01 * np.random.default_rng(0).standard_normal(m.vertices.shape)
+            mesh = Mesh(v.astype(np.float32), m.faces, compute_vertex_normals(v, m.faces))
+            cfg = UnwrapConfig(texture_size=1024, max_piece_faces=None if name.endswith("one") else 5000)
         base = _rss_mb()
         t0 = time.perf_counter()
         uvm = unwrap_uv(mesh, cfg)
         out["seconds"] = time.perf_counter() - t0
         out["peak_rss_mb"] = _rss_mb() - base
         out["faces"] = uvm.num_faces
-        out["note"] = f"20k noisy faces, {'one piece' if cfg.max_piece_faces is None else 'pieces of 5000'}"
+        if name == "unwrap_100k":
+            np.savez(workdir / "uvmesh.npz", **{k: getattr(uvm, k) for k in ("vertices", "faces", "uvs", "normals",
+                                                                              "tangents", "vmapping")})
+            out["note"] = f"xatlas, {uvm.num_vertices} split vertices"
+        else:
+            out["note"] = f"20k noisy faces, {'one piece' if cfg.max_piece_faces is None else 'pieces of 5000'}"
     elif name.startswith("bake"):
         from toolkit.bake import UVMesh
 

@@ -170,24 +170,31 @@ def _horizontal_axes(points: np.ndarray, up: np.ndarray, scale: float) -> np.nda
     return np.stack([c * e1 + s * e2, -s * e1 + c * e2, up])
 
 
-def box_depth(layout: RoomLayout, origins: torch.Tensor, dirs: torch.Tensor, lo=None, hi=None):
+def box_depth(layout: RoomLayout, origins: torch.Tensor, dirs: torch.Tensor):
     """Distance along each ray to where it leaves the box, and the face it leaves through.
 
     Args:
         origins: float [..., 3] world ray origins (inside the box). dirs: float [..., 3] unit world directions.
-        lo, hi: optional float [3] face coordinates overriding the layout's (used by the sweep).
     Returns:
         (t float [...], face int64 [...] in :data:`FACE_NAMES` order).
     """
     axes = torch.as_tensor(layout.axes, dtype=dirs.dtype, device=dirs.device)
     org = torch.as_tensor(layout.origin, dtype=dirs.dtype, device=dirs.device)
-    lo = torch.as_tensor(layout.lo if lo is None else lo, dtype=dirs.dtype, device=dirs.device)
-    hi = torch.as_tensor(layout.hi if hi is None else hi, dtype=dirs.dtype, device=dirs.device)
-    o = (origins - org) @ axes.T
-    d = dirs @ axes.T
-    pos = d > 0
-    safe = torch.where(d.abs() < 1e-12, torch.full_like(d, 1e-12), d)
-    t = torch.where(pos, (hi - o) / safe, (lo - o) / safe)
+    lo = torch.as_tensor(layout.lo, dtype=dirs.dtype, device=dirs.device)
+    hi = torch.as_tensor(layout.hi, dtype=dirs.dtype, device=dirs.device)
+    d, pos = _box_dirs(dirs @ axes.T)
+    return _box_exit((origins - org) @ axes.T, d, pos, lo, hi)
+
+
+def _box_dirs(d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Ray directions in the box's frame, kept off zero, and whether each component points to the ``hi`` face."""
+    return torch.where(d.abs() < 1e-12, torch.full_like(d, 1e-12), d), d > 0
+
+
+def _box_exit(o: torch.Tensor, d: torch.Tensor, pos: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor):
+    """(distance, face) where rays from ``o`` along ``d`` (both in the box's frame; ``d`` from :func:`_box_dirs`)
+    leave the box ``lo``..``hi``."""
+    t = torch.where(pos, (hi - o) / d, (lo - o) / d)
     t = torch.where(t > 0, t, torch.full_like(t, float("inf")))
     tmin, k = t.min(-1)
     side = torch.gather(pos.long(), -1, k[..., None])[..., 0]
@@ -234,9 +241,8 @@ class _Sweep:
         axes = torch.as_tensor(layout.axes, dtype=torch.float64)
         org = torch.as_tensor(layout.origin, dtype=torch.float64)
         self.o_box = ((origins - org) @ axes.T)[:, None, :].float()  # [V, 1, 3] ray origins in the box's frame
-        d_box = dirs @ axes.T
-        self.pos = d_box > 0
-        self.inv_d = (1.0 / torch.where(d_box.abs() < 1e-12, torch.full_like(d_box, 1e-12), d_box)).float()
+        d_box, self.pos = _box_dirs(dirs @ axes.T)
+        self.d_box = d_box.float()
         rot = c2w[pj, :3, :3]
         self.a = ((origins[pi] - c2w[pj, :3, 3])[:, None, :] @ rot).float()  # [Np, 1, 3]
         self.b = (dirs[pi] @ rot).float()  # [Np, P, 3]
@@ -251,10 +257,7 @@ class _Sweep:
         """(mean truncated colour difference of the pixels carried into a neighbour's view, the fraction of pixels
         leaving the box through each face, the fraction of pixel pairs in view)."""
         lo_, hi_ = torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32)
-        t = torch.where(self.pos, hi_ - self.o_box, lo_ - self.o_box) * self.inv_d  # [V, P, 3]
-        t = torch.where(t > 0, t, torch.full_like(t, float("inf")))
-        t, k = t.min(-1)  # as box_depth
-        face = 2 * k + torch.gather(self.pos.long(), -1, k[..., None])[..., 0]
+        t, face = _box_exit(self.o_box, self.d_box, self.pos, lo_, hi_)  # [V, P]
         ti = t[self.pi]
         rel = self.a + ti[..., None] * self.b  # [Np, P, 3]: the points in the neighbour's camera frame
         z = -rel[..., 2]
