@@ -1,6 +1,7 @@
 """toolkit.asset: AssetConfig checks (named like the options, before any work) and build_asset on callables."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -21,6 +22,8 @@ from toolkit.train import FieldCallables
     ({"min_component": -0.1}, "--min-component -0.1"),
     ({"min_seen": 1.5}, "--min-seen 1.5"),
     ({"depth_samples": 0}, "--depth-samples 0"),
+    ({"depth_rays": 10}, "--depth-rays 10"),
+    ({"method": "marching"}, "choose auto, mc or tsdf"),
     ({"supersample": 3}, "--supersample 3"),
     ({"ao_samples": -1}, "--ao-samples -1"),
     ({"level": math.inf}, "--level inf"),
@@ -57,3 +60,66 @@ def test_build_asset_from_callables():
     assert torch.equal(asset.sh, _sphere().sh)
     with pytest.raises(DarsError, match="RUN directory not found"):
         build_asset("/nonexistent/run")
+
+
+def _ring(n=8, size=(32, 24), radius=2.0):
+    """``n`` cameras on a circle of ``radius`` around the origin, looking at it (world up +z)."""
+    from toolkit.cameras import cameras_from_pinholes
+    from toolkit.pinhole import PinholeCamera, look_at
+
+    w, h = size
+    cams = []
+    for k in range(n):
+        a = 2 * math.pi * k / n
+        eye = np.array([radius * math.cos(a), radius * math.sin(a), 0.4])
+        cams.append(PinholeCamera(look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0])), 30.0, 30.0, w / 2, h / 2, w, h))
+    return cameras_from_pinholes(cams)
+
+
+def test_resampled_cameras_see_the_same_frustum():
+    from toolkit.cameras import Cameras, generate_rays
+
+    base = _ring(2, size=(40, 20))
+    cams = Cameras(base.c2w, base.fx, base.fy, base.cx, base.cy, torch.tensor([40, 30]), torch.tensor([20, 30]))
+    cams = Cameras(cams.c2w, cams.fx, cams.fy, cams.width / 2.0, cams.height / 2.0, cams.width, cams.height)
+    small = cams.resampled(10, 6)
+    assert small.width.tolist() == [10, 10] and small.height.tolist() == [6, 6]
+    for k in range(2):  # the image's corner rays (pixel edges, not centres) are the same before and after
+        corner = lambda c, u, v: ((u - c.cx[k]) / c.fx[k], (v - c.cy[k]) / c.fy[k])  # noqa: E731
+        for (u, v), (su, sv) in [((0, 0), (0, 0)), ((cams.width[k], cams.height[k]), (10, 6))]:
+            assert torch.allclose(torch.stack(corner(cams, u, v)), torch.stack(corner(small, su, sv)))
+    rays = generate_rays(small, [1])
+    assert len(rays) == 60
+    with pytest.raises(ValueError, match="0x6"):
+        cams.resampled(0, 6)
+
+
+def test_depth_cameras_fit_the_ray_budget():
+    from toolkit.asset import depth_cameras
+
+    cams = _ring(6, size=(64, 48))
+    assert depth_cameras(cams, 6 * 64 * 48) is cams  # within the budget: as they are
+    small = depth_cameras(cams, 6 * 64 * 48 // 4)
+    assert small.width.tolist() == [32] * 6 and small.height.tolist() == [24] * 6
+    assert len(small) == 6 and torch.allclose(small.fx, cams.fx / 2)
+
+
+def test_auto_method_fuses_depth_for_an_unbounded_field():
+    """``auto`` meshes a contracted field (rooms, captures) by TSDF fusion of its depth maps at the training
+    cameras, rendered on the smaller pixel grid ``depth_rays`` allows, and a bounded one by marching cubes."""
+    from toolkit.space import SceneSpace
+
+    sphere = _sphere()
+    cams = _ring(8, size=(32, 24))
+    unbounded = FieldCallables(sphere.density_fn, sphere.material_fn, sphere.aabb, sphere.sh, cams,
+                               SceneSpace(sphere.aabb, contraction=True))
+    cfg = AssetConfig(resolution=48, faces=0, depth_samples=96, depth_rays=8 * 16 * 12, min_component=0)
+    from toolkit.asset import build_mesh
+
+    mesh, stats = build_mesh(unbounded, cfg)
+    assert stats["method"] == "tsdf" and stats["method_option"] == "auto"
+    assert stats["depth_maps"] == {"views": 8, "width": 16, "height": 12, "samples": 96}
+    assert mesh.num_faces > 0 and abs(np.median(np.linalg.norm(mesh.vertices, axis=1)) - 0.5) < 0.05
+    for field in (unbounded._replace(space=None), unbounded):  # bounded, or an explicit iso-level: marching cubes
+        _, stats = build_mesh(field, replace(cfg, level=100.0))
+        assert stats["method"] == "mc" and "depth_maps" not in stats

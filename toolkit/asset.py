@@ -27,7 +27,7 @@ from .io import atomic_write, write_png
 from .mesh import Mesh
 from .train.run import FieldCallables, Run, field_callables
 
-__all__ = ["AssetConfig", "Asset", "build_asset", "build_mesh", "bake_mesh", "asset_field", "write_textures",
+__all__ = ["AssetConfig", "Asset", "build_asset", "build_mesh", "bake_mesh", "depth_cameras", "asset_field", "write_textures",
            "write_uv_obj"]
 
 
@@ -43,8 +43,12 @@ class AssetConfig:
     Every value is checked here, before any work, and errors name the command-line option.
     """
 
-    method: Literal["mc", "tsdf"] = "mc"
-    """``mc``: marching cubes on density; ``tsdf``: TSDF fusion of depth maps rendered at the training cameras."""
+    method: Literal["auto", "mc", "tsdf"] = "auto"
+    """``mc``: marching cubes on density; ``tsdf``: TSDF fusion of depth maps rendered at the training cameras
+    (each pixel's half-transmittance depth); ``auto``: ``tsdf`` for an unbounded (contracted) field that has its
+    training cameras — rooms and real captures, whose walls are a soft layer of density that no single iso-level
+    fits (README, "Meshing a room") — and ``mc`` otherwise (objects on a transparent background, or when ``level``
+    is given)."""
     resolution: int = 256
     """Grid cells along the longest box edge (mc), or the TSDF voxel = edge / resolution (tsdf)."""
     level: float | None = None
@@ -66,6 +70,9 @@ class AssetConfig:
     """Keep faces that no training camera sees."""
     depth_samples: int = 256
     """Samples per ray of the ``tsdf`` depth maps."""
+    depth_rays: int = 2_000_000
+    """``tsdf``: at most this many depth rays over all training cameras; every camera is kept and the depth maps
+    are rendered on one smaller pixel grid when the photos hold more pixels (:meth:`toolkit.cameras.Cameras.resampled`)."""
     texture: int = 1024
     """Texture size in texels (square)."""
     supersample: int = 1
@@ -76,8 +83,8 @@ class AssetConfig:
     """Device the field is queried on."""
 
     def __post_init__(self):
-        if self.method not in ("mc", "tsdf"):
-            raise ConfigError(f"--method {self.method!r}: choose mc or tsdf")
+        if self.method not in ("auto", "mc", "tsdf"):
+            raise ConfigError(f"--method {self.method!r}: choose auto, mc or tsdf")
         if self.resolution < 8:
             raise ConfigError(f"--resolution {self.resolution} is too small (use ≥ 8)")
         if self.level is not None and not math.isfinite(self.level):
@@ -94,6 +101,8 @@ class AssetConfig:
             raise ConfigError(f"--min-seen {self.min_seen} must be in [0, 1]")
         if self.depth_samples < 1:
             raise ConfigError(f"--depth-samples {self.depth_samples} must be ≥ 1")
+        if self.depth_rays < 64:
+            raise ConfigError(f"--depth-rays {self.depth_rays} must be ≥ 64")
         if not 16 <= self.texture <= 16384:
             raise ConfigError(f"--texture {self.texture} must be ≥ 16 and ≤ 16384 (texels)")
         if self.supersample not in (1, 2):
@@ -145,6 +154,21 @@ def asset_field(run: str | Path | Run | FieldCallables) -> FieldCallables:
     return FieldCallables(*run_module.load_field_callables(run_dir))
 
 
+def depth_cameras(cameras, max_rays: int):
+    """The training cameras on one pixel grid of at most ``max_rays`` pixels in all (the ``tsdf`` depth maps): the
+    median aspect ratio of the photos, never more pixels per view than the largest photo has; the cameras as they
+    are when they already share a size within the budget."""
+    w, h = cameras.width.double(), cameras.height.double()
+    aspect = float((w / h).median())
+    per_view = min(float((w * h).max()), max_rays / len(cameras))
+    width = max(8, round(math.sqrt(per_view * aspect)))
+    height = max(8, round(width / aspect))
+    if bool((cameras.width == cameras.width[0]).all() and (cameras.height == cameras.height[0]).all()) \
+            and int(cameras.width[0] * cameras.height[0]) * len(cameras) <= max_rays:
+        return cameras
+    return cameras.resampled(width, height)
+
+
 def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple[Mesh, dict]:
     """The mesh half: extract (marching cubes or TSDF), drop floaters and unseen faces, simplify, colour the vertices.
 
@@ -161,7 +185,11 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
 
     density_fn, material_fn, aabb, _, cameras = field[:5]
     space = field.space if isinstance(field, FieldCallables) else None
-    stats: dict = {"method": cfg.method, "resolution": cfg.resolution}
+    method = cfg.method
+    if method == "auto":  # an explicit iso-level asks for marching cubes
+        method = "tsdf" if space is not None and space.contraction and cameras is not None and cfg.level is None \
+            else "mc"
+    stats: dict = {"method": method, "method_option": cfg.method, "resolution": cfg.resolution}
     t0 = time.perf_counter()
     box = np.asarray(aabb.detach().cpu().numpy() if hasattr(aabb, "detach") else aabb, dtype=np.float64)
     seen = seen_sigma = None  # where the training rays reach half transmittance (what the photos see) and σ there
@@ -169,12 +197,12 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
         # unbounded field: mesh where the photos' rays find surfaces (walls, floor, objects), not the sky
         seen = seen_surface_points(density_fn, cameras, space, device=cfg.device)
         box, stats["region"] = surface_region(density_fn, cameras, space, device=cfg.device, points=seen)
-    elif cameras is not None and (cfg.min_component > 0 or (cfg.method == "mc" and cfg.level is None
+    elif cameras is not None and (cfg.min_component > 0 or (method == "mc" and cfg.level is None
                                                             and cfg.level_quantile > 0)):
         # bounded: the same box rays give the floater test and the iso-level (one march for both)
         seen, seen_sigma = seen_surface_points(density_fn, cameras, box, device=cfg.device, with_sigma=True)
     voxel = grid_spec(box, cfg.resolution)[0]  # marching cubes' (and the TSDF's) voxel: iso-level cap, floater radius
-    if cfg.method == "mc":
+    if method == "mc":
         level = cfg.level
         if level is None and cfg.level_quantile > 0 and cameras is not None:
             level, stats["level_from_rays"] = level_from_rays(density_fn, cameras, box, voxel,
@@ -185,8 +213,11 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
     else:
         if cameras is None:
             raise DarsError("--method tsdf needs the training cameras, but the RUN's field loader returned none")
-        depths = render_depth(density_fn, cameras, box, DepthRenderConfig(samples=cfg.depth_samples, device=cfg.device))
-        mesh = fuse_tsdf(depths, cameras, cfg=TsdfConfig(voxel_size=voxel, depth_max=float(np.linalg.norm(box[1] - box[0])) * 4))
+        cams = depth_cameras(cameras, cfg.depth_rays)
+        stats["depth_maps"] = {"views": len(cams), "width": int(cams.width[0]), "height": int(cams.height[0]),
+                               "samples": cfg.depth_samples}
+        depths = render_depth(density_fn, cams, box, DepthRenderConfig(samples=cfg.depth_samples, device=cfg.device))
+        mesh = fuse_tsdf(depths, cams, cfg=TsdfConfig(voxel_size=voxel, depth_max=float(np.linalg.norm(box[1] - box[0])) * 4))
     stats["extract_seconds"] = round(time.perf_counter() - t0, 3)
     stats["faces_extracted"] = mesh.num_faces
     if mesh.num_faces == 0:

@@ -28,8 +28,9 @@ ASSET_FILES = ("scene.glb", "mesh.ply", "mesh_stats.json", "textures/base_color.
 
 
 def add_mesh_options(q: argparse.ArgumentParser) -> None:
-    q.add_argument("--method", choices=("mc", "tsdf"), default="mc",
-                   help="marching cubes on density (default) or TSDF fusion of rendered depth maps")
+    q.add_argument("--method", choices=("auto", "mc", "tsdf"), default="auto",
+                   help="marching cubes on density, or TSDF fusion of depth maps rendered at the training cameras; "
+                        "auto (default): tsdf for an unbounded field (rooms, captures), mc for an object or with --level")
     q.add_argument("--resolution", type=number(int, min=8, max=4096), default=256,
                    help="grid cells along the longest box edge (mc), or the TSDF voxel = edge / resolution (tsdf)")
     q.add_argument("--level", type=number(float, above=0), default=None,
@@ -48,6 +49,9 @@ def add_mesh_options(q: argparse.ArgumentParser) -> None:
                         "half-transmittance points lies on it (1 = size alone decides)")
     q.add_argument("--keep-unseen", action="store_true", help="keep faces that no training camera sees")
     q.add_argument("--depth-samples", type=POSITIVE, default=256, help="samples per ray for --method tsdf depth maps")
+    q.add_argument("--depth-rays", type=number(int, min=64), default=2_000_000,
+                   help="tsdf: at most this many depth rays over all training views (larger photos are rendered "
+                        "on a smaller pixel grid)")
     q.add_argument("--device", default="cpu", help="device the field is queried on")
 
 
@@ -97,7 +101,7 @@ def asset_config(args: argparse.Namespace):
     from ..asset import AssetConfig
 
     names = ("method", "resolution", "level", "level_quantile", "faces", "simplify", "min_component", "min_seen",
-             "keep_unseen", "depth_samples", "texture", "supersample", "ao_samples", "device")
+             "keep_unseen", "depth_samples", "depth_rays", "texture", "supersample", "ao_samples", "device")
     return AssetConfig(**{k: getattr(args, k) for k in names if hasattr(args, k)})
 
 
