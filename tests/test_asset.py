@@ -72,17 +72,17 @@ def _ring(n=8, size=(32, 24), radius=2.0):
     for k in range(n):
         a = 2 * math.pi * k / n
         eye = np.array([radius * math.cos(a), radius * math.sin(a), 0.4])
-        cams.append(PinholeCamera(look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0])), 30.0, 30.0, w / 2, h / 2, w, h))
+        cams.append(PinholeCamera(look_at(eye, np.zeros(3)), 30.0, 30.0, w / 2, h / 2, w, h))
     return cameras_from_pinholes(cams)
 
 
-def test_resampled_cameras_see_the_same_frustum():
+def test_resized_cameras_see_the_same_frustum():
     from toolkit.cameras import Cameras, generate_rays
 
     base = _ring(2, size=(40, 20))
-    cams = Cameras(base.c2w, base.fx, base.fy, base.cx, base.cy, torch.tensor([40, 30]), torch.tensor([20, 30]))
-    cams = Cameras(cams.c2w, cams.fx, cams.fy, cams.width / 2.0, cams.height / 2.0, cams.width, cams.height)
-    small = cams.resampled(10, 6)
+    size = torch.tensor([40, 30]), torch.tensor([20, 30])  # two sizes, two aspects
+    cams = Cameras(base.c2w, base.fx, base.fy, size[0] / 2.0, size[1] / 2.0, *size)
+    small = cams.resized(10, 6)
     assert small.width.tolist() == [10, 10] and small.height.tolist() == [6, 6]
     for k in range(2):  # the image's corner rays (pixel edges, not centres) are the same before and after
         corner = lambda c, u, v: ((u - c.cx[k]) / c.fx[k], (v - c.cy[k]) / c.fy[k])  # noqa: E731
@@ -91,7 +91,7 @@ def test_resampled_cameras_see_the_same_frustum():
     rays = generate_rays(small, [1])
     assert len(rays) == 60
     with pytest.raises(ValueError, match="0x6"):
-        cams.resampled(0, 6)
+        cams.resized(0, 6)
 
 
 def test_depth_cameras_fit_the_ray_budget():

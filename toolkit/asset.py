@@ -27,8 +27,8 @@ from .io import atomic_write, write_png
 from .mesh import Mesh
 from .train.run import FieldCallables, Run, field_callables
 
-__all__ = ["AssetConfig", "Asset", "build_asset", "build_mesh", "bake_mesh", "depth_cameras", "asset_field", "write_textures",
-           "write_uv_obj"]
+__all__ = ["AssetConfig", "Asset", "build_asset", "build_mesh", "bake_mesh", "depth_cameras", "asset_field",
+           "write_textures", "write_uv_obj"]
 
 
 SEEN_RADIUS_VOXELS = 3.0
@@ -72,7 +72,7 @@ class AssetConfig:
     """Samples per ray of the ``tsdf`` depth maps."""
     depth_rays: int = 2_000_000
     """``tsdf``: at most this many depth rays over all training cameras; every camera is kept and the depth maps
-    are rendered on one smaller pixel grid when the photos hold more pixels (:meth:`toolkit.cameras.Cameras.resampled`)."""
+    are rendered on one smaller pixel grid when the photos hold more pixels (:func:`depth_cameras`)."""
     texture: int = 1024
     """Texture size in texels (square)."""
     supersample: int = 1
@@ -158,15 +158,14 @@ def depth_cameras(cameras, max_rays: int):
     """The training cameras on one pixel grid of at most ``max_rays`` pixels in all (the ``tsdf`` depth maps): the
     median aspect ratio of the photos, never more pixels per view than the largest photo has; the cameras as they
     are when they already share a size within the budget."""
+    if bool((cameras.width == cameras.width[0]).all() and (cameras.height == cameras.height[0]).all()) \
+            and int(cameras.width[0] * cameras.height[0]) * len(cameras) <= max_rays:
+        return cameras
     w, h = cameras.width.double(), cameras.height.double()
     aspect = float((w / h).median())
     per_view = min(float((w * h).max()), max_rays / len(cameras))
     width = max(8, round(math.sqrt(per_view * aspect)))
-    height = max(8, round(width / aspect))
-    if bool((cameras.width == cameras.width[0]).all() and (cameras.height == cameras.height[0]).all()) \
-            and int(cameras.width[0] * cameras.height[0]) * len(cameras) <= max_rays:
-        return cameras
-    return cameras.resampled(width, height)
+    return cameras.resized(width, max(8, round(width / aspect)))
 
 
 def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple[Mesh, dict]:
@@ -217,7 +216,8 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
         stats["depth_maps"] = {"views": len(cams), "width": int(cams.width[0]), "height": int(cams.height[0]),
                                "samples": cfg.depth_samples}
         depths = render_depth(density_fn, cams, box, DepthRenderConfig(samples=cfg.depth_samples, device=cfg.device))
-        mesh = fuse_tsdf(depths, cams, cfg=TsdfConfig(voxel_size=voxel, depth_max=float(np.linalg.norm(box[1] - box[0])) * 4))
+        depth_max = float(np.linalg.norm(box[1] - box[0])) * 4
+        mesh = fuse_tsdf(depths, cams, cfg=TsdfConfig(voxel_size=voxel, depth_max=depth_max))
     stats["extract_seconds"] = round(time.perf_counter() - t0, 3)
     stats["faces_extracted"] = mesh.num_faces
     if mesh.num_faces == 0:

@@ -69,12 +69,13 @@ class Cameras:
         K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = self.fx, self.fy, self.cx, self.cy, 1.0
         return K
 
-    def resampled(self, width: int, height: int) -> "Cameras":
-        """The same cameras seeing the same frustums on a ``width`` x ``height`` pixel grid (every camera, whatever
+    def resized(self, width: int, height: int) -> "Cameras":
+        """The same cameras seeing the same frustums on one ``width`` x ``height`` pixel grid (every camera, whatever
         its own size): focal lengths and principal points scale by ``width / w`` and ``height / h`` per axis (pixel
-        centres stay at +0.5), so a camera of another aspect gets non-square pixels, not a cropped view."""
+        centres stay at +0.5), so a camera of another aspect gets non-square pixels, not a cropped view. The batch
+        form of :meth:`toolkit.pinhole.PinholeCamera.resized`."""
         if width < 1 or height < 1:
-            raise ValueError(f"Cameras.resampled: size {width}x{height} must be at least 1x1 px")
+            raise ValueError(f"Cameras.resized: size {width}x{height} must be at least 1x1 px")
         sx = width / self.width.to(self.fx.dtype)
         sy = height / self.height.to(self.fy.dtype)
         size = lambda n: torch.full_like(self.width, n)  # noqa: E731

@@ -30,7 +30,8 @@ ASSET_FILES = ("scene.glb", "mesh.ply", "mesh_stats.json", "textures/base_color.
 def add_mesh_options(q: argparse.ArgumentParser) -> None:
     q.add_argument("--method", choices=("auto", "mc", "tsdf"), default="auto",
                    help="marching cubes on density, or TSDF fusion of depth maps rendered at the training cameras; "
-                        "auto (default): tsdf for an unbounded field (rooms, captures), mc for an object or with --level")
+                        "auto (default): tsdf for an unbounded field (rooms, captures), mc for an object or with "
+                        "--level")
     q.add_argument("--resolution", type=number(int, min=8, max=4096), default=256,
                    help="grid cells along the longest box edge (mc), or the TSDF voxel = edge / resolution (tsdf)")
     q.add_argument("--level", type=number(float, above=0), default=None,
