@@ -23,6 +23,8 @@ from toolkit.train import FieldCallables
     ({"min_seen": 1.5}, "--min-seen 1.5"),
     ({"depth_samples": 0}, "--depth-samples 0"),
     ({"depth_rays": 10}, "--depth-rays 10"),
+    ({"depth_min_opacity": 0.0}, "--depth-min-opacity 0.0"),
+    ({"depth_min_opacity": 0.7}, "--depth-min-opacity 0.7"),
     ({"method": "marching"}, "choose auto, mc or tsdf"),
     ({"supersample": 3}, "--supersample 3"),
     ({"ao_samples": -1}, "--ao-samples -1"),
@@ -118,7 +120,10 @@ def test_auto_method_fuses_depth_for_an_unbounded_field():
 
     mesh, stats = build_mesh(unbounded, cfg)
     assert stats["method"] == "tsdf" and stats["method_option"] == "auto"
-    assert stats["depth_maps"] == {"views": 8, "width": 16, "height": 12, "samples": 96}
+    dm = stats["depth_maps"]
+    assert dm == {"views": 8, "width": 16, "height": 12, "samples": 96, "min_opacity": 0.5,
+                  "pixels_with_depth": dm["pixels_with_depth"]}
+    assert 0.1 < dm["pixels_with_depth"] < 0.6  # the sphere fills part of each view
     assert mesh.num_faces > 0 and abs(np.median(np.linalg.norm(mesh.vertices, axis=1)) - 0.5) < 0.05
     for field in (unbounded._replace(space=None), unbounded):  # bounded, or an explicit iso-level: marching cubes
         _, stats = build_mesh(field, replace(cfg, level=100.0))

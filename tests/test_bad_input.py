@@ -473,6 +473,8 @@ _ARGS = [
      ("--texture",)),
     ("export-asset-depth-samples", lambda c: ["export-asset", c.w.run, "--out", c.t / O, "--depth-samples", 0],
      ("--depth-samples",)),
+    ("export-asset-depth-min-opacity", lambda c: ["export-asset", c.w.run, "--out", c.t / O, "--depth-min-opacity", 0.7],
+     ("--depth-min-opacity", "0.5")),
     ("export-onnx-opset", lambda c: ["export-onnx", c.w.run, "--out", c.t / O, "--opset", 20], ("--opset", "17")),
     ("export-onnx-precision", lambda c: ["export-onnx", c.w.run, "--out", c.t / O, "--precision", "fp32,fp64"],
      ("--precision", "fp64")),

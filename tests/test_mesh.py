@@ -281,6 +281,23 @@ def test_render_depth_matches_analytic_sphere():
     assert mesh.num_faces > 0
 
 
+def test_render_depth_translucent_ray_gives_its_median_depth():
+    """A ray that gathers opacity 0.3 (a translucent ball, uniform σ) measures where it has gathered half of that
+    (α = 0.15) when ``min_opacity`` allows it, and nothing when ``min_opacity`` asks for more."""
+    R, alpha = 0.4, 0.3
+    sigma0 = -math.log1p(-alpha) / (2 * R)  # through the centre: opacity 0.3
+    fn = lambda p: torch.where(p.norm(dim=-1) < R, sigma0, 0.0)  # noqa: E731
+    cams = ring_cameras(n=2, size=33, focal=30.0)  # odd size: the centre pixel's ray passes through the centre
+    depth = render_depth(fn, cams, BOX, DepthRenderConfig(samples=400, min_opacity=0.2, progress=False))
+    expected = 2.0 - R + -math.log1p(-alpha / 2) / sigma0  # distance to the ball, then until α = 0.15
+    assert depth[:, 16, 16] == pytest.approx([expected] * 2, abs=0.01)
+    assert (depth[:, 0, 0] == 0).all()  # a ray that misses the ball
+    none = render_depth(fn, cams, BOX, DepthRenderConfig(samples=400, min_opacity=0.5, progress=False))
+    assert (none == 0).all()
+    with pytest.raises(ConfigError, match="min_opacity"):
+        render_depth(fn, cams, BOX, DepthRenderConfig(min_opacity=1.0, progress=False))
+
+
 # ------------------------------------------------------------------------------------------------ clean-up
 def two_spheres() -> Mesh:
     big = extract_mesh(sphere_density(0.5, beta=0.02), BOX, MeshConfig(resolution=48, progress=False))

@@ -49,8 +49,12 @@ def add_mesh_options(q: argparse.ArgumentParser) -> None:
                    help="keep a component whatever its size when at least this fraction of the training rays' "
                         "half-transmittance points lies on it (1 = size alone decides)")
     q.add_argument("--keep-unseen", action="store_true", help="keep faces that no training camera sees")
-    q.add_argument("--depth-samples", type=POSITIVE, default=256, help="samples per ray for --method tsdf depth maps")
-    q.add_argument("--depth-rays", type=number(int, min=64), default=2_000_000,
+    q.add_argument("--depth-samples", type=POSITIVE, default=128, help="samples per ray for --method tsdf depth maps")
+    q.add_argument("--depth-min-opacity", type=number(float, above=0, max=0.5), default=0.5,
+                   help="tsdf: below 0.5, a ray that never reaches half opacity but gathers at least this much in the "
+                        "meshed region gives the median of its own termination (translucent walls are meshed too, "
+                        "with poor colour); default 0.5: only rays that reach half opacity")
+    q.add_argument("--depth-rays", type=number(int, min=64), default=1_000_000,
                    help="tsdf: at most this many depth rays over all training views (larger photos are rendered "
                         "on a smaller pixel grid)")
     q.add_argument("--device", default="cpu", help="device the field is queried on")
@@ -102,7 +106,8 @@ def asset_config(args: argparse.Namespace):
     from ..asset import AssetConfig
 
     names = ("method", "resolution", "level", "level_quantile", "faces", "simplify", "min_component", "min_seen",
-             "keep_unseen", "depth_samples", "depth_rays", "texture", "supersample", "ao_samples", "device")
+             "keep_unseen", "depth_samples", "depth_min_opacity", "depth_rays", "texture", "supersample", "ao_samples",
+             "device")
     return AssetConfig(**{k: getattr(args, k) for k in names if hasattr(args, k)})
 
 

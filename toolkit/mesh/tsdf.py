@@ -19,8 +19,12 @@ class DepthRenderConfig:
 
     Attributes:
         samples: uniform samples per ray between the ray's AABB entry and exit.
-        opacity: a pixel's depth is where the accumulated opacity first reaches this value (the median
-            termination depth for 0.5); pixels whose ray never reaches it get depth 0 (no hit).
+        opacity: a pixel's depth is where the accumulated opacity first reaches this value (0.5: the median
+            termination depth of an opaque ray).
+        min_opacity: a ray that gathers less than ``opacity`` inside the box but at least this much gives the
+            median of its own termination (where it has gathered half its opacity): a translucent wall still
+            gives its depth. Rays that gather less get depth 0 (no measurement): they see through (windows, the
+            sky). Equal to ``opacity`` (the default): only rays that reach ``opacity`` count.
         batch: rays per chunk (``batch × samples`` points per ``density_fn`` call).
         device: device the points are sent to.
         progress: show a progress bar (stderr).
@@ -28,6 +32,7 @@ class DepthRenderConfig:
 
     samples: int = 256
     opacity: float = 0.5
+    min_opacity: float = 0.5
     batch: int = 4096
     device: str = "cpu"
     progress: bool = True
@@ -44,18 +49,21 @@ def render_depth(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndarray
         cfg: :class:`DepthRenderConfig`.
 
     Returns:
-        float32 [K, H, W] depth along the camera axis, metres; 0 where the ray does not become opaque.
+        float32 [K, H, W] depth along the camera axis, metres; 0 where the ray gathers less than
+        ``min(cfg.opacity, cfg.min_opacity)``.
     """
     from ..cameras import generate_rays
 
     box = torch.as_tensor(_check_aabb(aabb), dtype=torch.float32)
     check_range(cfg.opacity, 1e-6, 1 - 1e-6, "DepthRenderConfig.opacity")
+    check_range(cfg.min_opacity, 1e-6, 1 - 1e-6, "DepthRenderConfig.min_opacity")
     hs, ws = cameras.height.tolist(), cameras.width.tolist()
     if len(set(hs)) != 1 or len(set(ws)) != 1:
         raise DarsError(f"render_depth: cameras must share one image size, got heights {sorted(set(hs))} widths {sorted(set(ws))}")
     K, H, W = len(cameras), int(hs[0]), int(ws[0])
     out = np.zeros((K, H * W), dtype=np.float32)
-    target = -math.log1p(-cfg.opacity)  # optical depth at which the opacity reaches cfg.opacity
+    min_tau = -math.log1p(-cfg.min_opacity)  # optical depth of the least opacity that counts as a surface
+    target_tau = -math.log1p(-cfg.opacity)
     bar = _progress(K * H * W, "depth", cfg.progress, unit="ray")
     try:
         cams = cameras.to("cpu")
@@ -71,8 +79,11 @@ def render_depth(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndarray
                 pts = r.origins[:, None] + r.directions[:, None] * ts[..., None]
                 sigma = _density(density_fn, pts.reshape(-1, 3).numpy(), cfg.device).reshape(ts.shape)
                 tau = np.cumsum(np.maximum(sigma, 0) * (span.numpy() / cfg.samples), axis=1)  # optical depth
-                reached = tau >= target
-                any_hit = reached.any(1) & hit.numpy()
+                # where the opacity reaches cfg.opacity, or half the ray's own total when it never does
+                total = -np.expm1(-tau[:, -1])  # the opacity the ray gathers in the box
+                target = -np.log1p(-np.where(total >= cfg.opacity, cfg.opacity, 0.5 * total))
+                reached = tau >= target[:, None]
+                any_hit = (tau[:, -1] >= min(min_tau, target_tau)) & hit.numpy()
                 first = reached.argmax(1)
                 # linear interpolation of the crossing inside the first sample that reaches the target
                 i = np.arange(ts.shape[0])
