@@ -79,11 +79,11 @@ def render_depth(density_fn: DensityFn, cameras, aabb: torch.Tensor | np.ndarray
                 pts = r.origins[:, None] + r.directions[:, None] * ts[..., None]
                 sigma = _density(density_fn, pts.reshape(-1, 3).numpy(), cfg.device).reshape(ts.shape)
                 tau = np.cumsum(np.maximum(sigma, 0) * (span.numpy() / cfg.samples), axis=1)  # optical depth
-                # where the opacity reaches cfg.opacity, or half the ray's own total when it never does
-                total = -np.expm1(-tau[:, -1])  # the opacity the ray gathers in the box
-                target = -np.log1p(-np.where(total >= cfg.opacity, cfg.opacity, 0.5 * total))
+                # where the opacity reaches cfg.opacity, or half the ray's own total (1 - e^-τ_end) when it never does
+                tau_end = tau[:, -1]
+                target = np.where(tau_end >= target_tau, target_tau, -np.log1p(0.5 * np.expm1(-tau_end)))
                 reached = tau >= target[:, None]
-                any_hit = (tau[:, -1] >= min(min_tau, target_tau)) & hit.numpy()
+                any_hit = (tau_end >= min(min_tau, target_tau)) & hit.numpy()
                 first = reached.argmax(1)
                 # linear interpolation of the crossing inside the first sample that reaches the target
                 i = np.arange(ts.shape[0])
