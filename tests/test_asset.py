@@ -35,6 +35,24 @@ def test_asset_config_names_the_option(kw, message):
         AssetConfig(**kw)
 
 
+@pytest.mark.parametrize("argv", [["mesh", "RUN"], ["bake", "RUN"], ["export-asset", "RUN", "--out", "DIR"]])
+def test_cli_defaults_are_asset_config_defaults(argv):
+    """The mesh / bake / export-asset options repeat AssetConfig's defaults as literals: they must agree, so the
+    Python API and the CLI build the same asset."""
+    from dataclasses import fields
+
+    from toolkit.cli import build_parser
+    from toolkit.cli.asset import asset_config
+
+    args = build_parser().parse_args(argv)
+    cli, api = asset_config(args), AssetConfig()
+    differ = {f.name: (getattr(cli, f.name), getattr(api, f.name)) for f in fields(AssetConfig)
+              if getattr(cli, f.name) != getattr(api, f.name)}
+    assert not differ, f"`dars {argv[0]}` defaults (CLI, AssetConfig) differ: {differ}"
+    if argv[0] == "export-asset":  # mesh and bake each have their own stage's options; export-asset has all
+        assert {f.name for f in fields(AssetConfig)} <= set(vars(args)), "an AssetConfig field has no option"
+
+
 def _sphere(radius=0.5):
     def density(p):
         return 1e3 * torch.sigmoid((radius - p.norm(dim=-1)) * 400)
