@@ -61,6 +61,8 @@ def main() -> int:
     ap.add_argument("scenes", nargs="*", help="scene folders whose train split has ground-truth depth maps; default: "
                     "the bundled sample and the cached validation galleries (python samples/galleries.py)")
     ap.add_argument("--max-side", type=int, default=LayoutConfig.max_side, help="sweep image size")
+    ap.add_argument("--stride", type=int, default=LayoutConfig.stride,
+                    help="carry every STRIDE-th pixel of each sweep image (1: all; LayoutConfig.stride)")
     ap.add_argument("--json", default=str(ROOT / "bench" / "out" / "layout.json"))
     args = ap.parse_args()
     if not args.scenes:
@@ -69,7 +71,8 @@ def main() -> int:
 
         args.scenes = [str(ROOT / "samples" / "gallery")] + cached_scenes()
         print("[layout] scenes: " + ", ".join(args.scenes))
-    cfg = LayoutConfig(max_side=args.max_side)
+    cfg = LayoutConfig(max_side=args.max_side, stride=args.stride)
+    print(f"[layout] sweep: {cfg.max_side} px, every {cfg.stride}. pixel carried, {cfg.max_views} views")
     rows = []
     for s in args.scenes:
         r = score_scene(s, cfg)

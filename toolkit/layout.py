@@ -54,6 +54,9 @@ class LayoutConfig:
     """Photos are reduced to this longest side for the sweep."""
     max_views: int = 32
     """Views used (evenly spaced)."""
+    stride: int = 2
+    """Every ``stride``-th pixel of each reduced photo (in both directions) is carried into its neighbours; the
+    neighbours are sampled at full reduced size. 1: every pixel (the fit as first landed, ~4× slower)."""
     neighbours: int = 3
     """Neighbour views each view is compared with."""
     candidates: int = 24
@@ -84,9 +87,9 @@ class LayoutConfig:
     """... and at least this fraction of the sweep's pixels leave the box through it."""
 
     def __post_init__(self):
-        if self.max_side < 16 or self.max_views < 2 or self.neighbours < 1 or self.candidates < 4 or self.fine < 2 or self.rounds < 1 or self.rise_ratio <= 1:
+        if self.max_side < 16 or self.max_views < 2 or self.neighbours < 1 or self.candidates < 4 or self.fine < 2 or self.rounds < 1 or self.rise_ratio <= 1 or not 1 <= self.stride <= 8:
             raise ConfigError("LayoutConfig: need max_side >= 16, max_views >= 2, neighbours >= 1, candidates >= 4, "
-                              "rounds >= 1")
+                              "fine >= 2, rounds >= 1, rise_ratio > 1, 1 <= stride <= 8")
         if self.range_scale <= 0 or self.truncate <= 0 or self.min_contrast < 0 or not 0 <= self.min_pixels < 1:
             raise ConfigError("LayoutConfig: need range_scale > 0, truncate > 0, min_contrast >= 0, "
                               "0 <= min_pixels < 1")
@@ -234,6 +237,10 @@ class _Sweep:
                         cams.cy.double() * sy, torch.full_like(cams.width, W), torch.full_like(cams.height, H))
         K, c2w = small.intrinsics(), small.c2w
         dirs = generate_rays(small).directions.reshape(len(views), H * W, 3).double()  # every pixel, row-major
+        s = cfg.stride  # the pixels carried: every s-th row and column, from the middle of the first s x s cell
+        rows, cols = torch.arange(s // 2, H, s), torch.arange(s // 2, W, s)
+        keep = (rows[:, None] * W + cols[None, :]).reshape(-1)
+        dirs = dirs[:, keep]
         origins = c2w[:, :3, 3]
         nb = neighbour_views(cams, min(cfg.neighbours, len(views) - 1))
         pi = torch.arange(len(views)).repeat_interleave(nb.shape[1])
@@ -250,7 +257,7 @@ class _Sweep:
         self.fy, self.cy = K[pj, 1, 1, None].float(), K[pj, 1, 2, None].float()
         self.pi, self.H, self.W = pi, H, W
         self.img_j = img[pj]  # [Np, 3, H, W]
-        self.target = img.flatten(2)[pi]  # [Np, 3, P]
+        self.target = img.flatten(2)[:, :, keep][pi]  # [Np, 3, P]
         self.truncate = cfg.truncate
 
     def cost(self, lo: np.ndarray, hi: np.ndarray) -> tuple[float, np.ndarray, float]:
