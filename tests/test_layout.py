@@ -151,7 +151,7 @@ def test_room_layout_json_round_trip_and_bad_record():
 
 def test_layout_depth_option_trains_logs_and_is_recorded(sample_scene_path, tmp_path, capsys, monkeypatch):
     """`dars train --layout-depth W`: the box fitted from the photos, the term logged each step, the weight and the
-    box in config.json; --resume reuses the recorded box. Off by default."""
+    box in config.json; --resume reuses the recorded box."""
     from toolkit.cli import main
 
     run = tmp_path / "l"

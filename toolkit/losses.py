@@ -81,10 +81,11 @@ class LossWeights:
     """Ours (DS-NeRF's idea, our form): rays through the pixels of triangulated sparse points (the photos' own
     features and the poses; :func:`toolkit.bounds.sparse_depth_targets`) must end at the point's depth,
     :func:`sparse_depth_loss`. 0 = off; None = by scene type, as ``opacity``."""
-    layout_depth: float = 0.0
+    layout_depth: float | None = None
     """Ours: rays through the pixels of the photos' large textureless regions must end on the room's box
     (:func:`toolkit.layout.fit_room_layout`, a photometric plane sweep over the walls, floor and ceiling), with
-    :func:`sparse_depth_loss`; only faces the sweep is confident of give targets. 0 = off."""
+    :func:`sparse_depth_loss`; only faces the sweep is confident of give targets. 0 = off; None = by scene type, as
+    ``opacity`` (0.1 for a room since 2026-11-29: README, "A room box from the photos")."""
     planar: float = 0.0
     """Ours (StructNeRF's planar constraint, our form): the rendered points of each large textureless region of a
     photo (:func:`toolkit.regions.textureless_regions`: plain walls, floors) lie on one plane,

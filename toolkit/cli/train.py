@@ -73,7 +73,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "textureless regions\")")
     q.add_argument("--layout-depth", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the room-layout loss: rays through the photos' large textureless regions end on "
-                        "the room's box, found by a photometric plane sweep (toolkit.layout; default: 0 = off)")
+                        "the room's box, found by a photometric plane sweep before the first step (toolkit.layout; "
+                        "default: 0.1 for a room, 0 for an object; 0 = off)")
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
     q.add_argument("--albedo-supervision", action="store_true",
                    help="use the scene's ground-truth albedo maps in L_mat (eq. 20); makes albedo MAE circular")

@@ -233,10 +233,11 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
     return replace(cfg, **overrides)
 
 
-ROOM_LOSSES = {"sparse_depth": 0.1, "opacity": 0.1, "depth_normal": 0.5}
+ROOM_LOSSES = {"sparse_depth": 0.1, "opacity": 0.1, "depth_normal": 0.5, "layout_depth": 0.1}
 """Loss weights that :func:`resolve_config` gives a room (``unbounded``) where the config leaves them None: the
-geometry terms measured on the validation galleries (README, "Geometry of a room"). An object on a transparent
-background gets 0 for each (the opacity loss would fill its background; the others are not measured there)."""
+geometry terms measured on the validation galleries (README, "Geometry of a room" and "A room box from the
+photos"). An object on a transparent background gets 0 for each (the opacity loss would fill its background; the
+others are not measured there)."""
 
 SHELL_FADE = 0.1
 """Fraction of the run over which the (legacy, bounded-only) room prior's layer fades in, after stage (a)."""

@@ -121,7 +121,7 @@ def _room_layout(cfg: TrainConfig, scene, saved: dict | None, ddp, log, priors_r
     run's priors folder or the scene's own, or, under torch.distributed, the box rank 0 fits on every photo (each
     rank would otherwise fit its own on its shard, and the ranks' targets would disagree). None: off, or one
     process fits it in ``prepare_data``."""
-    if cfg.losses.layout_depth <= 0:
+    if (cfg.losses.layout_depth or 0.0) <= 0:
         return None
     from ..layout import RoomLayout, fit_room_layout
     from ..priors import priors_path, read_layout

@@ -412,7 +412,7 @@ def train_step(state: TrainState, data: TrainData) -> dict:
             terms["orientation"] = orientation_loss(out.normal, batch.rays.directions, out.opacity)
     if (lw.sparse_depth or 0.0) > 0 and data.sparse_depth is not None:
         terms["sparse_depth"] = _sparse_depth_term(state, data, data.sparse_depth)
-    if lw.layout_depth > 0 and data.layout_depth is not None:
+    if (lw.layout_depth or 0.0) > 0 and data.layout_depth is not None:
         terms["layout_depth"] = _sparse_depth_term(state, data, data.layout_depth)
     if lw.planar > 0 and data.planar is not None:
         terms["planar"] = _planar_term(state, data)
