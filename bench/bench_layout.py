@@ -72,7 +72,7 @@ def main() -> int:
         args.scenes = [str(ROOT / "samples" / "gallery")] + cached_scenes()
         print("[layout] scenes: " + ", ".join(args.scenes))
     cfg = LayoutConfig(max_side=args.max_side, stride=args.stride)
-    print(f"[layout] sweep: {cfg.max_side} px, every {cfg.stride}. pixel carried, {cfg.max_views} views")
+    print(f"[layout] sweep: {cfg.max_side} px, pixel stride {cfg.stride}, {cfg.max_views} views")
     rows = []
     for s in args.scenes:
         r = score_scene(s, cfg)

@@ -130,6 +130,9 @@ def test_bad_layout_config_raises():
         LayoutConfig(candidates=2)
     with pytest.raises(ConfigError):
         LayoutConfig(min_pixels=1.0)
+    for stride in (0, 9):
+        with pytest.raises(ConfigError, match="stride"):
+            LayoutConfig(stride=stride)
 
 
 def test_room_layout_json_round_trip_and_bad_record():

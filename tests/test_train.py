@@ -390,7 +390,8 @@ def test_room_geometry_losses_follow_the_scene_type(sample_scene_path):
 
     scene = load_scene(sample_scene_path, "train")
     keys = tuple(ROOM_LOSSES)
-    assert set(keys) == {"sparse_depth", "opacity", "depth_normal", "layout_depth"} and all(v > 0 for v in ROOM_LOSSES.values())
+    assert set(keys) == {"sparse_depth", "opacity", "depth_normal", "layout_depth"}
+    assert all(v > 0 for v in ROOM_LOSSES.values())
     room, _ = resolve_config(make_config("fast", steps=1), scene)
     assert {k: getattr(room.losses, k) for k in keys} == ROOM_LOSSES
     obj, _ = resolve_config(make_config("fast", steps=1, scene_type="object"), scene)

@@ -87,7 +87,8 @@ class LayoutConfig:
     """... and at least this fraction of the sweep's pixels leave the box through it."""
 
     def __post_init__(self):
-        if self.max_side < 16 or self.max_views < 2 or self.neighbours < 1 or self.candidates < 4 or self.fine < 2 or self.rounds < 1 or self.rise_ratio <= 1 or not 1 <= self.stride <= 8:
+        if (self.max_side < 16 or self.max_views < 2 or self.neighbours < 1 or self.candidates < 4 or self.fine < 2
+                or self.rounds < 1 or self.rise_ratio <= 1 or not 1 <= self.stride <= 8):
             raise ConfigError("LayoutConfig: need max_side >= 16, max_views >= 2, neighbours >= 1, candidates >= 4, "
                               "fine >= 2, rounds >= 1, rise_ratio > 1, 1 <= stride <= 8")
         if self.range_scale <= 0 or self.truncate <= 0 or self.min_contrast < 0 or not 0 <= self.min_pixels < 1:
