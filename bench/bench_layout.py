@@ -63,6 +63,8 @@ def main() -> int:
     ap.add_argument("--max-side", type=int, default=LayoutConfig.max_side, help="sweep image size")
     ap.add_argument("--stride", type=int, default=LayoutConfig.stride,
                     help="carry every STRIDE-th pixel of each sweep image (1: all; LayoutConfig.stride)")
+    ap.add_argument("--highpass", type=float, default=LayoutConfig.highpass,
+                    help="high-pass σ as a fraction of the sweep image's side (0: raw colours; LayoutConfig.highpass)")
     ap.add_argument("--json", default=str(ROOT / "bench" / "out" / "layout.json"))
     args = ap.parse_args()
     if not args.scenes:
@@ -71,8 +73,9 @@ def main() -> int:
 
         args.scenes = [str(ROOT / "samples" / "gallery")] + cached_scenes()
         print("[layout] scenes: " + ", ".join(args.scenes))
-    cfg = LayoutConfig(max_side=args.max_side, stride=args.stride)
-    print(f"[layout] sweep: {cfg.max_side} px, pixel stride {cfg.stride}, {cfg.max_views} views")
+    cfg = LayoutConfig(max_side=args.max_side, stride=args.stride, highpass=args.highpass)
+    print(f"[layout] sweep: {cfg.max_side} px, pixel stride {cfg.stride}, high-pass σ {cfg.highpass:.4g} of the side, "
+          f"{cfg.max_views} views")
     rows = []
     for s in args.scenes:
         r = score_scene(s, cfg)
