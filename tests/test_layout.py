@@ -182,6 +182,19 @@ def test_room_layout_json_round_trip_and_bad_record():
         RoomLayout.from_json(bad)
 
 
+def test_a_run_saved_before_the_layout_loss_existed_resumes_without_it():
+    """config.json of a run made before 2026-11-28 has no layout_depth: it trained without the term, and a resumed
+    run must not switch it on (today's room default is 0.1)."""
+    from toolkit.train import TrainConfig, make_config
+
+    old = make_config("fast").to_dict()
+    assert old["losses"]["layout_depth"] is None  # by scene type: 0.1 for a room
+    del old["losses"]["layout_depth"]
+    assert TrainConfig.from_dict(old).losses.layout_depth == 0.0
+    kept = make_config("fast").to_dict()
+    assert TrainConfig.from_dict(kept).losses.layout_depth is None  # a stored value (here None) is kept
+
+
 def test_layout_depth_option_trains_logs_and_is_recorded(sample_scene_path, tmp_path, capsys, monkeypatch):
     """`dars train --layout-depth W`: the box fitted from the photos, the term logged each step, the weight and the
     box in config.json; --resume reuses the recorded box."""

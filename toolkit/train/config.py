@@ -170,8 +170,13 @@ class TrainConfig:
         samplers = {k: dict(d.pop(k)) for k in ("sampler", "render_sampler")}
         for v in samplers.values():
             v.setdefault("normalise", "none")  # runs made before W was rank-normalised
+        losses = dict(d.pop("losses"))
+        for k in ("opacity", "depth_normal", "sparse_depth", "layout_depth"):
+            # a room term a run was saved without did not exist when it trained: off, not today's room default
+            # (which --resume would otherwise switch on partway through the run)
+            losses.setdefault(k, 0.0)
         return cls(field=FieldConfig(**fd), sampler=SamplerConfig(**samplers["sampler"]),
-                   render_sampler=SamplerConfig(**samplers["render_sampler"]), losses=LossWeights(**d.pop("losses")),
+                   render_sampler=SamplerConfig(**samplers["render_sampler"]), losses=LossWeights(**losses),
                    snapshot_minutes=tuple(d.pop("snapshot_minutes", ())), **d)
 
 
