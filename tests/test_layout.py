@@ -258,3 +258,35 @@ def test_priors_layout_stage_writes_the_box_and_training_reads_it(tmp_path, caps
                  "--priors", str(pri), "--layout-depth", "0.1", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "fitted in another frame" in err and "dars priors layout" in err
+
+
+def test_layout_targets_only_on_pixels_labelled_wall_or_floor(sample_scene_path):
+    """A plain pedestal side is textureless too, but the box's depth there is the wall behind it: with labels, the
+    layout targets keep to pixels labelled wall or floor (predicted labels by default; the ground truth here, asked
+    for explicitly, so the test knows the classes); without labels some land on the pedestal."""
+    from dataclasses import replace
+
+    from toolkit.scene import load_scene
+    from toolkit.train import make_config
+    from toolkit.train.data import LAYOUT_CLASSES, prepare_data
+
+    scene = load_scene(sample_scene_path, "train")
+    cfg = make_config("fast", steps=1, labels="ground-truth")
+    cfg = replace(cfg, losses=replace(cfg.losses, layout_depth=0.1))
+    logs: list[str] = []
+    data = prepare_data(scene, cfg, log=logs.append)
+    room = RoomLayout.from_json(data.room_layout)
+    bare = prepare_data(scene, replace(cfg, labels="none", semantics=False, mat_labels=False), log=logs.append,
+                        room_layout=room)
+
+    def classes(t):
+        return np.concatenate([scene.load_extra(v, "semantic").numpy()[t["rows"][t["views"] == v].numpy(),
+                                                                     t["cols"][t["views"] == v].numpy()]
+                               for v in t["views"].unique().tolist()])
+
+    kept, every = classes(data.layout_depth), classes(bare.layout_depth)
+    assert len(kept) > 0.5 * len(every), (len(kept), len(every))
+    assert np.isin(kept, LAYOUT_CLASSES).all()
+    assert (~np.isin(every, LAYOUT_CLASSES)).sum() > 1000  # the filter has something to remove on the sample
+    assert data.priors_used["layout_targets"] == "textureless pixels labelled wall or floor"
+    assert "no labels" in bare.priors_used["layout_targets"]
