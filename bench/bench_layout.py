@@ -5,7 +5,9 @@ faces). For every pixel of the training photos' large textureless regions (:func
 whose ray leaves the box through a face the sweep is confident of, the box's depth is compared with the
 ground-truth depth map (scoring only: nothing here trains, and the ground truth feeds nothing). Printed per scene:
 the fitted box, each face's contrast and share of pixels, the share of textureless pixels given a target, and
-their depth error (median, within 5 / 10 cm, beyond 50 cm); then mean and worst over the scenes.
+their depth error (median, within 5 / 10 cm, beyond 50 cm); then mean and worst over the scenes. With ``--labels
+predicted`` (the default, as ``dars train`` does) only the textureless pixels the shipped segmenter labels wall or
+floor count (:data:`toolkit.train.data.LAYOUT_CLASSES`); ``--labels none`` scores every textureless pixel.
 
     python bench/bench_layout.py samples/gallery ~/.cache/dars/galleries/validation/seed_1000001
     python bench/bench_layout.py      # the sample (without its aabb: the fit never reads it) and every cached
@@ -31,7 +33,20 @@ from toolkit.regions import textureless_regions  # noqa: E402
 from toolkit.scene import load_scene  # noqa: E402
 
 
-def score_scene(path: str, cfg: LayoutConfig) -> dict:
+def predicted_room_pixels(scene) -> dict[int, np.ndarray]:
+    """Per view: bool [H, W], the pixels the shipped segmenter labels wall or floor (as ``dars train`` keeps them)."""
+    import tempfile
+
+    from toolkit.priors import priors_segment, read_priors
+    from toolkit.train.data import LAYOUT_CLASSES
+
+    with tempfile.TemporaryDirectory() as tmp:
+        priors_segment(scene, Path(tmp) / "segment")
+        lab = read_priors(scene, tmp, labels="segment", weights=False, colour=False, metal="none").labels
+        return {v: np.isin(lab.raw(v).numpy(), LAYOUT_CLASSES) for v in range(len(scene))}
+
+
+def score_scene(path: str, cfg: LayoutConfig, labels: str = "predicted") -> dict:
     scene = load_scene(path, "train", upright="off")
     if not scene.has_extra("depth"):
         raise SystemExit(f"{path}: no ground-truth depth maps in the train split; this benchmark scores against them")
@@ -40,6 +55,9 @@ def score_scene(path: str, cfg: LayoutConfig) -> dict:
     lay = fit_room_layout(scene, points, cfg)
     fit_s = time.time() - t0
     regions = {v: textureless_regions(scene.load_image(v)) for v in range(len(scene))}
+    if labels == "predicted":
+        room = predicted_room_pixels(scene)
+        regions = {v: (r > 0) & room[v] for v, r in regions.items()}
     tg = layout_depth_targets(scene, lay, regions=regions.__getitem__)
     n_regions = sum(int((r > 0).sum()) for r in regions.values())
     errors = []
@@ -50,7 +68,7 @@ def score_scene(path: str, cfg: LayoutConfig) -> dict:
         errors.append(np.abs(tg["depth"][m].numpy() - gt)[ok])
     e = np.concatenate(errors) if errors else np.zeros(0)
     stat = (lambda f: float(f(e)) if len(e) else None)
-    return {"scene": path, "points": len(points), "fit_s": round(fit_s, 1), "layout": lay.to_json(),
+    return {"scene": path, "labels": labels, "points": len(points), "fit_s": round(fit_s, 1), "layout": lay.to_json(),
             "size_m": np.round(lay.hi - lay.lo, 3).tolist(), "target_share": len(tg["depth"]) / max(n_regions, 1),
             "median_m": stat(np.median), "within_5cm": stat(lambda x: (x < 0.05).mean()),
             "within_10cm": stat(lambda x: (x < 0.10).mean()), "beyond_50cm": stat(lambda x: (x > 0.50).mean())}
@@ -65,6 +83,8 @@ def main() -> int:
                     help="carry every STRIDE-th pixel of each sweep image (1: all; LayoutConfig.stride)")
     ap.add_argument("--highpass", type=float, default=LayoutConfig.highpass,
                     help="high-pass σ as a fraction of the sweep image's side (0: raw colours; LayoutConfig.highpass)")
+    ap.add_argument("--labels", choices=("predicted", "none"), default="predicted",
+                    help="predicted: only pixels the shipped segmenter labels wall or floor (as training); none: all")
     ap.add_argument("--json", default=str(ROOT / "bench" / "out" / "layout.json"))
     args = ap.parse_args()
     if not args.scenes:
@@ -75,10 +95,11 @@ def main() -> int:
         print("[layout] scenes: " + ", ".join(args.scenes))
     cfg = LayoutConfig(max_side=args.max_side, stride=args.stride, highpass=args.highpass)
     print(f"[layout] sweep: {cfg.max_side} px, pixel stride {cfg.stride}, high-pass σ {cfg.highpass:.4g} of the side, "
-          f"{cfg.max_views} views")
+          f"{cfg.max_views} views; textureless pixels: "
+          f"{'labelled wall or floor by the shipped segmenter' if args.labels == 'predicted' else 'all'}")
     rows = []
     for s in args.scenes:
-        r = score_scene(s, cfg)
+        r = score_scene(s, cfg, args.labels)
         rows.append(r)
         faces = ", ".join(f"{n} {f['contrast']:.2f}/{f['coverage']:.0%}{'' if f['confident'] else ' (not used)'}"
                           for n, f in r["layout"]["faces"].items())
