@@ -100,9 +100,10 @@ class LayoutConfig:
     alone the sweep followed it, and placed the dark (base colour 0.03-0.05), roughness-0.5 south wall of
     validation gallery 1000002 0.72 m too far (24.6 % of that scene's targets > 50 cm off). The blurred reflections
     are low frequencies, and the high-passed fit put that wall within 5 cm; but sharp reflections stay, and it put
-    the same gallery's glossy stone floor (ceiling openings mirrored in it) 3 m too low. Both failures lie *behind*
-    the surface, so a face takes the high-passed fit's position only where that is nearer the cameras by more than
-    ``band_tolerance``; elsewhere the colour fit's stands. :attr:`RoomLayout.band` says which fit each face took."""
+    the same gallery's glossy stone floor 3 m too low (probably the ceiling openings' sharp reflections in it).
+    Both failures lie *behind* the surface, so a face takes the high-passed fit's position only where that is
+    nearer the cameras by more than ``band_tolerance``; elsewhere the colour fit's stands. :attr:`RoomLayout.band`
+    says which fit each face took."""
     band_tolerance: float = 0.05
     """See ``highpass``; a fraction of the scene scale (median camera-to-point distance: 0.18-0.21 m on the
     validation galleries), above the 6-10 cm the two fits differ by on faces both place right (gallery 1000001)."""
