@@ -48,11 +48,12 @@ large photo would otherwise hold hundreds of thousands."""
 
 LAYOUT_CLASSES = (SEMANTIC_CLASSES.index("wall"), SEMANTIC_CLASSES.index("floor"))
 """Classes whose textureless pixels get the room box's depth (``losses.layout_depth``) when the run has labels
-(predicted by default). Measured 2026-11-29 with the box of each scene (labels and depth of the ground truth used
-for scoring only): of the targets on every textureless pixel, 1.5-9 % lay on plain pedestal sides, and 73-99 % of
-those were > 50 cm off (the box's depth is the wall behind them). Keeping the pixels the shipped segmenter calls
-wall or floor kept 90-97 % of the targets and took the share > 50 cm off from 8.7 / 2.9 / 1.6 / 1.6 % to
-1.6 / 0.2 / 0.0 / 0.0 % on the sample and galleries 1000000-1000002."""
+(predicted by default); the ceiling is ``wall`` in the SPEC's classes. Measured 2026-11-29 with the box of each
+scene (labels and depth of the ground truth used for scoring only): of the targets on every textureless pixel,
+1.5-9 % lay on plain pedestal sides, and 73-99 % of those were > 50 cm off (the box's depth is the wall behind
+them). Keeping the pixels the shipped segmenter calls wall or floor kept 90-97 % of the targets and took the share
+> 50 cm off from 7.6 / 2.9 / 1.6 / 1.6 % to 0.9 / 0.2 / 0.0 / 0.0 % on the sample and galleries 1000000-1000002
+(``python bench/bench_layout.py --labels none``, then the default)."""
 
 
 @dataclass
