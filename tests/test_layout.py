@@ -125,8 +125,8 @@ def test_a_box_room_with_paintings_is_recovered_and_its_walls_count():
 
 def test_a_glossy_walls_reflections_do_not_draw_it_behind_itself():
     """A dark glossy wall shows the room's reflection, which lines up between the photos behind the wall. Raw
-    colours follow it (the wall lands ~0.3 m too far here, as gallery 1000002's did); the high-passed sweep keeps
-    the wall where its painting and its edges are."""
+    colours follow it (the wall lands ~0.3 m too far here, as gallery 1000002's did); the cross-checked fit takes
+    the high-passed fit's nearer position for that wall only, where its painting and its edges are."""
     room = _BoxRoom(glossy=True)
     raw = fit_room_layout(room, room.points, LayoutConfig(max_side=64, max_views=16, highpass=0.0))
     lay = fit_room_layout(room, room.points, CFG)
