@@ -31,19 +31,19 @@ from toolkit.bounds import triangulate_sparse_points  # noqa: E402
 from toolkit.layout import LayoutConfig, fit_room_layout, layout_depth_targets  # noqa: E402
 from toolkit.regions import textureless_regions  # noqa: E402
 from toolkit.scene import load_scene  # noqa: E402
+from toolkit.train.data import layout_pixels  # noqa: E402
 
 
-def predicted_room_pixels(scene) -> dict[int, np.ndarray]:
-    """Per view: bool [H, W], the pixels the shipped segmenter labels wall or floor (as ``dars train`` keeps them)."""
+def predicted_labels(scene):
+    """The shipped segmenter's labels of every view (:class:`toolkit.pixels.PackedViews`), as ``dars train``
+    computes them when it is given no priors."""
     import tempfile
 
     from toolkit.priors import priors_segment, read_priors
-    from toolkit.train.data import LAYOUT_CLASSES
 
     with tempfile.TemporaryDirectory() as tmp:
         priors_segment(scene, Path(tmp) / "segment")
-        lab = read_priors(scene, tmp, labels="segment", weights=False, colour=False, metal="none").labels
-        return {v: np.isin(lab.raw(v).numpy(), LAYOUT_CLASSES) for v in range(len(scene))}
+        return read_priors(scene, tmp, labels="segment", weights=False, colour=False, metal="none").labels
 
 
 def score_scene(path: str, cfg: LayoutConfig, labels: str = "predicted") -> dict:
@@ -54,10 +54,8 @@ def score_scene(path: str, cfg: LayoutConfig, labels: str = "predicted") -> dict
     points = triangulate_sparse_points(scene).points
     lay = fit_room_layout(scene, points, cfg)
     fit_s = time.time() - t0
-    regions = {v: textureless_regions(scene.load_image(v)) for v in range(len(scene))}
-    if labels == "predicted":
-        room = predicted_room_pixels(scene)
-        regions = {v: (r > 0) & room[v] for v, r in regions.items()}
+    lab = predicted_labels(scene) if labels == "predicted" else None
+    regions = {v: layout_pixels(textureless_regions(scene.load_image(v)), lab, v) for v in range(len(scene))}
     tg = layout_depth_targets(scene, lay, regions=regions.__getitem__)
     n_regions = sum(int((r > 0).sum()) for r in regions.values())
     errors = []

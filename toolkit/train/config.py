@@ -171,7 +171,7 @@ class TrainConfig:
         for v in samplers.values():
             v.setdefault("normalise", "none")  # runs made before W was rank-normalised
         losses = dict(d.pop("losses"))
-        for k in ("opacity", "depth_normal", "sparse_depth", "layout_depth"):
+        for k in ROOM_LOSSES:
             # a room term a run was saved without did not exist when it trained: off, not today's room default
             # (which --resume would otherwise switch on partway through the run)
             losses.setdefault(k, 0.0)

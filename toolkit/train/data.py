@@ -40,7 +40,8 @@ from ..priors import priors_path, read_priors
 from ..scene import SEMANTIC_CLASSES, Scene
 from .config import TrainConfig, photos_have_transparency
 
-__all__ = ["TrainData", "prepare_data", "grey_ambient_sh", "PLANAR_PIXELS_PER_REGION", "LAYOUT_CLASSES"]
+__all__ = ["TrainData", "prepare_data", "grey_ambient_sh", "PLANAR_PIXELS_PER_REGION", "LAYOUT_CLASSES",
+           "layout_pixels"]
 
 PLANAR_PIXELS_PER_REGION = 2048
 """Pixels kept of each textureless region (``losses.planar``): the loss draws a few dozen a step, and a region of a
@@ -54,6 +55,16 @@ scene (labels and depth of the ground truth used for scoring only): of the targe
 them). Keeping the pixels the shipped segmenter calls wall or floor kept 90-97 % of the targets and took the share
 > 50 cm off from 7.6 / 2.9 / 1.6 / 1.6 % to 0.9 / 0.2 / 0.0 / 0.0 % on the sample and galleries 1000000-1000002
 (``python bench/bench_layout.py --labels none``, then the default)."""
+
+
+
+def layout_pixels(textureless: np.ndarray, labels: PackedViews | None, i: int) -> np.ndarray:
+    """bool [H, W]: the pixels of photo ``i`` that get a room-layout target: its textureless pixels, kept to
+    :data:`LAYOUT_CLASSES` where the run has labels (``bench/bench_layout.py`` scores the same set)."""
+    room_px = textureless > 0
+    if labels is not None:  # a plain pedestal side is textureless too, but stands in front of the box
+        room_px &= np.isin(labels.raw(i).numpy(), LAYOUT_CLASSES)
+    return room_px
 
 
 @dataclass
@@ -193,10 +204,7 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
             images.write(i, img.permute(1, 2, 0))
         reg = textureless_regions(img) if want_planar or want_layout else None
         if want_layout:
-            room_px = reg > 0
-            if labels is not None:  # a plain pedestal side is textureless too, but stands in front of the box
-                room_px &= np.isin(labels.raw(i).numpy(), LAYOUT_CLASSES)
-            layout_regions.append(room_px)
+            layout_regions.append(layout_pixels(reg, labels, i))
         if want_planar:
             reg = reg.reshape(-1)
             for k in range(1, int(reg.max()) + 1):
