@@ -60,3 +60,25 @@ def test_packed_samples_helpers():
     assert s.counts().tolist() == [2, 0, 1]
     pts = s.points(torch.zeros(3, 3), torch.tensor([[1.0, 0, 0], [0, 1, 0], [0, 0, 1]]))
     assert torch.allclose(pts[2], torch.tensor([0.0, 0, 1.0]))
+
+
+def test_permute_matches_indexing_values_and_gradients():
+    # render_rays reorders cat([coarse, fine]) by merge_samples' permutation; its backward gathers by the inverse
+    # permutation instead of autograd's accumulating scatter, and must give the same values and gradients
+    from toolkit.pipeline import _permute
+
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(50, 9, 3, generator=g, requires_grad=True)
+    b = torch.randn(30, 9, 3, generator=g, requires_grad=True)
+    order = torch.randperm(80, generator=g)
+    inverse = torch.empty_like(order)
+    inverse[order] = torch.arange(80)
+    w = torch.randn(80, 9, 3, generator=g)
+    out = _permute(a, b, order, inverse)
+    ref = torch.cat([a, b])[order]
+    assert torch.equal(out, ref)
+    ga, gb = torch.autograd.grad((out * w).sum(), (a, b))
+    ra, rb = torch.autograd.grad((ref * w).sum(), (a, b))
+    assert torch.equal(ga, ra) and torch.equal(gb, rb)
+    with torch.no_grad():  # no graph: plain indexing
+        assert torch.equal(_permute(a, b, order, inverse), ref)
