@@ -647,3 +647,27 @@ def test_upright_is_recorded_and_used_by_load_run_and_resume(tiny, tmp_path, cap
     run = load_run(off, with_weights=False)
     assert run.step == 2 and torch.equal(run.train_scene.cameras.c2w, file_c2w)
     assert run.load_split("test").meta["upright"]["kept"] == "upright='off'"
+
+
+def test_light_head_folds_the_global_light_into_its_bias():
+    # the light head's 27 l_env inputs are the same for every point: DarsField.heads adds them to the first layer's
+    # bias instead of concatenating them to h; the residual, and the gradients it sends back, must not change
+    from toolkit.field import DarsField, FieldConfig
+
+    torch.manual_seed(0)
+    fld = DarsField(FieldConfig(), torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    for p in fld.light_head.parameters():                          # the last layer starts at zero: make it not
+        torch.nn.init.normal_(p, std=0.3)
+    h = torch.randn(64, fld.feature_dim, requires_grad=True)
+    l_env = torch.randn(9, 3)
+    folded = fld._light_head(h, l_env)
+    ref = fld.light_head(torch.cat([h, l_env.reshape(1, 27).expand(64, 27)], -1))
+    assert torch.allclose(folded, ref, atol=1e-5), float((folded - ref).abs().max())
+    w = torch.randn_like(ref)
+    params = [h] + list(fld.light_head.parameters())
+    g_folded = torch.autograd.grad((folded * w).sum(), params)
+    g_ref = torch.autograd.grad((ref * w).sum(), params)
+    for a, b in zip(g_folded, g_ref):
+        assert torch.allclose(a, b, atol=1e-4, rtol=1e-4)
+    out = fld.heads(h.detach(), l_env=l_env)
+    assert out.light_residual.shape == (64, 9, 3) and torch.isfinite(out.light).all()

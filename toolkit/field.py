@@ -221,6 +221,17 @@ class DarsField(nn.Module):
         return self.geometry_features(points)[0]
 
     # ------------------------------------------------------------------ heads
+    def _light_head(self, h: torch.Tensor, l_env: torch.Tensor) -> torch.Tensor:
+        """``light_head(cat([h, l_env]))`` [N, 27] for one global ``l_env`` [9, 3]: its 27 inputs are the same for
+        every point, so the first layer takes them as part of its bias instead of a [N, D + 27] concatenation."""
+        first = self.light_head[0]
+        d = h.shape[1]
+        bias = first.bias + first.weight[:, d:] @ l_env.reshape(27).to(h)
+        z = nn.functional.linear(h, first.weight[:, :d], bias)
+        for layer in self.light_head[1:]:
+            z = layer(z)
+        return z
+
     def heads(
         self,
         h: torch.Tensor,
@@ -240,12 +251,11 @@ class DarsField(nn.Module):
             mat = torch.sigmoid(self.material_head(torch.cat([h, s], -1)))
             out.albedo, out.roughness, out.metallic = mat[:, :3], mat[:, 3], mat[:, 4]
             if l_env is not None:
-                env = l_env.reshape(1, 27).to(h).expand(h.shape[0], 27)
                 if self.light_head is not None:
                     # bounded: |Δl_k| ≤ ½·|L00| per channel (a local correction of the room's light, not a second
                     # light source; unbounded, it can blow up to 10x the ambient level on white-background scenes)
                     bound = 0.5 * l_env.reshape(1, 9, 3)[:, :1, :].abs().to(h) + 1e-3
-                    res = torch.tanh(self.light_head(torch.cat([h, env], -1)).reshape(-1, 9, 3)) * bound
+                    res = torch.tanh(self._light_head(h, l_env).reshape(-1, 9, 3)) * bound
                     out.light_residual = res
                     out.light = l_env.reshape(1, 9, 3).to(h) + res
                 else:

