@@ -7,8 +7,9 @@ and, after a warm-up, times field steps with the current code and with the refer
 interleaved in blocks of three steps so that a slow minute of the machine hits every variant alike:
 
 * ``reference``: ``cat([coarse, fine])[order]`` with autograd's accumulating ``index_put_`` backward, the two SH
-  contractions of :func:`toolkit.shading.shade_pbr` as broadcast multiply-and-sums over ``[S, 9, 3]``, and the light
-  head on ``cat([h, l_env])`` (the code before 2026-11-29);
+  contractions of :func:`toolkit.shading.shade_pbr` (``shading._sh_light``) as broadcast multiply-and-sums over
+  ``[S, 9, 3]``, and the light head on ``cat([h, l_env])`` (the code before 2026-11-29, but for the two SH weight
+  rows being stacked first, a [S, 2, 9] copy);
 * ``gather``: only the reordering changed (:func:`toolkit.pipeline._permute`: the backward gathers by the inverse
   permutation);
 * ``current``: the code as it is.
@@ -35,51 +36,31 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import toolkit.pipeline as pipeline  # noqa: E402
+import toolkit.shading as shading  # noqa: E402
 from toolkit.field import DarsField  # noqa: E402
-from toolkit.sh import sh_basis  # noqa: E402
-from toolkit.shading import (_BAND_OF_K, SH_IRRADIANCE_BANDS, Shading, ShadingConfig, env_brdf,  # noqa: E402
-                             specular_band_attenuation)
 
 
 def reference_permute(a, b, order, inverse):
     return torch.cat([a, b])[order]
 
 
-def reference_shade_pbr(albedo, roughness, metallic, normals, view_dirs, sh, cfg=ShadingConfig()):
-    band_w = torch.tensor([SH_IRRADIANCE_BANDS[b] for b in _BAND_OF_K], dtype=albedo.dtype, device=albedo.device)
-    irradiance = ((sh_basis(normals) * band_w)[..., None] * sh).sum(-2)
-    if cfg.clamp_negative_light:
-        irradiance = irradiance.clamp_min(0.0)
-    m = metallic[..., None]
-    diffuse = albedo * (1.0 - m) * irradiance / torch.pi
-    if not cfg.specular:
-        return Shading(diffuse, diffuse, torch.zeros_like(diffuse))
-    n_dot_v_raw = (normals * view_dirs).sum(-1, keepdim=True)
-    reflected = 2.0 * n_dot_v_raw * normals - view_dirs
-    a = roughness[..., None].clamp(0.0, 1.0) ** 2
-    lerp = (1.0 - a) * (torch.sqrt((1.0 - a).clamp_min(1e-12)) + a)
-    reflected = torch.nn.functional.normalize(normals + lerp * (reflected - normals), dim=-1, eps=1e-8)
-    radiance = ((sh_basis(reflected) * specular_band_attenuation(roughness))[..., None] * sh).sum(-2)
-    if cfg.clamp_negative_light:
-        radiance = radiance.clamp_min(0.0)
-    A, B = env_brdf(roughness, n_dot_v_raw.squeeze(-1).clamp(1e-4, 1.0))
-    f0 = cfg.dielectric_f0 * (1.0 - m) + albedo * m
-    specular = (f0 * A[..., None] + B[..., None]) * radiance
-    return Shading(diffuse + specular, diffuse, specular)
+def reference_sh_light(y, sh):
+    """The SH contraction as before: a broadcast multiply-and-sum over [..., 9, 3] for each row of ``y``."""
+    return torch.stack([(y[..., j, :, None] * sh).sum(-2) for j in range(y.shape[-2])], -2)
 
 
 def reference_light_head(self, h, l_env):
     return self.light_head(torch.cat([h, l_env.reshape(1, 27).to(h).expand(h.shape[0], 27)], -1))
 
 
-CURRENT = (pipeline._permute, pipeline.shade_pbr, DarsField._light_head)
-VARIANTS = {"reference": (reference_permute, reference_shade_pbr, reference_light_head),
-            "gather": (CURRENT[0], reference_shade_pbr, reference_light_head),
+CURRENT = (pipeline._permute, shading._sh_light, DarsField._light_head)
+VARIANTS = {"reference": (reference_permute, reference_sh_light, reference_light_head),
+            "gather": (CURRENT[0], reference_sh_light, reference_light_head),
             "current": CURRENT}
 
 
 def use(name: str) -> None:
-    pipeline._permute, pipeline.shade_pbr, DarsField._light_head = VARIANTS[name]
+    pipeline._permute, shading._sh_light, DarsField._light_head = VARIANTS[name]
 
 
 def main(argv=None) -> int:

@@ -225,8 +225,7 @@ class _Permute(torch.autograd.Function):
 def _permute(a: torch.Tensor, b: torch.Tensor, order: torch.Tensor, inverse: torch.Tensor) -> torch.Tensor:
     """``cat([a, b])[order]`` for the permutation ``order`` of :func:`toolkit.sampling.merge_samples`
     (``inverse[order] = arange``)."""
-    x = torch.cat([a, b])
-    return _Permute.apply(x, order, inverse) if x.requires_grad else x.index_select(0, order)
+    return _Permute.apply(torch.cat([a, b]), order, inverse)
 
 
 def _cat_outputs(a: FieldOutputs, b: FieldOutputs, order: torch.Tensor, inverse: torch.Tensor) -> FieldOutputs:

@@ -161,6 +161,13 @@ def env_brdf(roughness: torch.Tensor, n_dot_v: torch.Tensor) -> tuple[torch.Tens
     return v[..., 0], v[..., 1]
 
 
+def _sh_light(y: torch.Tensor, sh: torch.Tensor) -> torch.Tensor:
+    """Σ_k y[..., j, k] · sh[..., k, c]: SH weights y [..., J, 9] against radiance coefficients sh [..., 9, 3]
+    (or [9, 3]) -> [..., J, 3]. One batched product: per sample on the CPU ~1.3x faster forward and backward than
+    J broadcast multiply-and-sums over [..., 9, 3] (``bench/bench_step.py`` swaps this for that reference)."""
+    return y @ sh
+
+
 def shade_pbr(
     albedo: torch.Tensor,
     roughness: torch.Tensor,
@@ -191,29 +198,26 @@ def shade_pbr(
         tensor([0.5000, 0.5000, 0.5000])
     """
     band_w = torch.tensor([SH_IRRADIANCE_BANDS[b] for b in _BAND_OF_K], dtype=albedo.dtype, device=albedo.device)
-    y_n = sh_basis(normals) * band_w  # [..., 9]
-    m = metallic[..., None]
-    if not cfg.specular:
-        irradiance = (y_n[..., None, :] @ sh)[..., 0, :]
-        if cfg.clamp_negative_light:
-            irradiance = irradiance.clamp_min(0.0)
-        diffuse = albedo * (1.0 - m) * irradiance / torch.pi
-        return Shading(diffuse, diffuse, torch.zeros_like(diffuse))
-    n_dot_v_raw = (normals * view_dirs).sum(-1, keepdim=True)
-    reflected = 2.0 * n_dot_v_raw * normals - view_dirs
-    a = roughness[..., None].clamp(0.0, 1.0) ** 2
-    # clamped under the root: roughness = sigmoid saturates at exactly 1.0 in float32, where d√(1−a)/da is infinite
-    # and 0·∞ would make the gradient NaN (the value is the same)
-    lerp = (1.0 - a) * (torch.sqrt((1.0 - a).clamp_min(1e-12)) + a)
-    reflected = torch.nn.functional.normalize(normals + lerp * (reflected - normals), dim=-1, eps=1e-8)
-    y_r = sh_basis(reflected) * specular_band_attenuation(roughness)
-    # both SH contractions in one batched product ([..., 2, 9] @ [..., 9, 3]): per sample on the CPU this is ~1.3x
-    # faster forward and backward than two broadcast multiply-and-sums over [..., 9, 3]
-    light = torch.stack([y_n, y_r], -2) @ sh
-    irradiance, radiance = light[..., 0, :], light[..., 1, :]
+    y = sh_basis(normals) * band_w  # [..., 9]: the irradiance weights of the normal
+    if cfg.specular:
+        n_dot_v_raw = (normals * view_dirs).sum(-1, keepdim=True)
+        reflected = 2.0 * n_dot_v_raw * normals - view_dirs
+        a = roughness[..., None].clamp(0.0, 1.0) ** 2
+        # clamped under the root: roughness = sigmoid saturates at exactly 1.0 in float32, where d√(1−a)/da is
+        # infinite and 0·∞ would make the gradient NaN (the value is the same)
+        lerp = (1.0 - a) * (torch.sqrt((1.0 - a).clamp_min(1e-12)) + a)
+        reflected = torch.nn.functional.normalize(normals + lerp * (reflected - normals), dim=-1, eps=1e-8)
+        y = torch.stack([y, sh_basis(reflected) * specular_band_attenuation(roughness)], -2)  # [..., 2, 9]
+    else:
+        y = y[..., None, :]  # [..., 1, 9]
+    light = _sh_light(y, sh)  # [..., J, 3]: irradiance (and the reflection's radiance)
     if cfg.clamp_negative_light:
-        irradiance, radiance = irradiance.clamp_min(0.0), radiance.clamp_min(0.0)
-    diffuse = albedo * (1.0 - m) * irradiance / torch.pi
+        light = light.clamp_min(0.0)
+    m = metallic[..., None]
+    diffuse = albedo * (1.0 - m) * light[..., 0, :] / torch.pi
+    if not cfg.specular:
+        return Shading(diffuse, diffuse, torch.zeros_like(diffuse))
+    radiance = light[..., 1, :]
     n_dot_v = n_dot_v_raw.squeeze(-1).clamp(1e-4, 1.0)
     A, B = env_brdf(roughness, n_dot_v)
     f0 = cfg.dielectric_f0 * (1.0 - m) + albedo * m
