@@ -75,8 +75,9 @@ def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True) 
 # ------------------------------------------------------------------------------------------- trained sample (slow)
 SAMPLE_STEPS = 160
 """Training steps of the sample run (~3 min on one busy CPU thread; a fixed step count keeps it reproducible)."""
-SAMPLE_ASSET_ARGS = ("--resolution", "160", "--texture", "1024")
-"""export-asset options (the iso-level is chosen by :func:`surface_level`)."""
+SAMPLE_ASSET_ARGS = ("--resolution", "160", "--texture", "1024", "--view-rays", "200000")
+"""export-asset options (the iso-level is chosen by :func:`surface_level`; the view-projected bake renders the 80
+training views at 50x50, not the default ~79x79, to keep the session short)."""
 _CACHE: dict[str, Path] = {}
 
 

@@ -29,6 +29,9 @@ from toolkit.train import FieldCallables
     ({"supersample": 3}, "--supersample 3"),
     ({"ao_samples": -1}, "--ao-samples -1"),
     ({"level": math.inf}, "--level inf"),
+    ({"bake_from": "rays"}, "--bake-from 'rays'"),
+    ({"view_rays": 10}, "--view-rays 10"),
+    ({"view_tolerance": 0.0}, "--view-tolerance 0.0"),
 ])
 def test_asset_config_names_the_option(kw, message):
     with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
@@ -70,8 +73,10 @@ def _sphere(radius=0.5):
 def test_build_asset_from_callables():
     lines = []
     asset = build_asset(_sphere(), AssetConfig(resolution=32, faces=600, texture=64, level=100.0), log=lines.append)
-    assert [m.split(" faces")[0] for m in lines[:1]] == [f"[dars] UV atlas of {asset.mesh.num_faces}"]  # xatlas is silent
-    assert len(lines) == 2 and lines[1].startswith("[dars] UV atlas done in")
+    assert lines[0].startswith("[dars] --bake-from views: the field has no renderer")  # callables: point queries
+    assert [m.split(" faces")[0] for m in lines[1:2]] == [f"[dars] UV atlas of {asset.mesh.num_faces}"]  # xatlas
+    assert len(lines) == 3 and lines[2].startswith("[dars] UV atlas done in")
+    assert asset.stats["bake"]["bake_from"] == "points"
     assert 0 < asset.mesh.num_faces <= 600 * 1.02 and asset.uvmesh.num_faces == asset.mesh.num_faces
     assert abs(np.median(np.linalg.norm(asset.mesh.vertices, axis=1)) - 0.5) < 2 / 32
     assert asset.textures.base_color.shape[:2] == (64, 64) and set(np.unique(asset.uvmesh.face_labels)) == {3}

@@ -545,6 +545,9 @@ def test_baked_sample_matches_the_field_render(tmp_path_factory, gl):
     from viewers.preview import OffscreenPreview, PreviewConfig
 
     run_dir, asset_dir = trained_sample(tmp_path_factory.mktemp("sample"))
+    bake = json.loads((asset_dir / "mesh_stats.json").read_text())["bake"]
+    assert bake["bake_from"] == "views" and bake["views"]["count"] == 80, bake  # the default: the field's renders
+    assert bake["views"]["texels_seen"] > 0.5, bake
     run = load_run(run_dir)
     scene = load_scene(run.scene_path, "test")
     extent = float(np.linalg.norm((scene.aabb[1] - scene.aabb[0]).numpy()))

@@ -230,7 +230,7 @@ def test_cli_export_web_from_a_run(tmp_path_factory):
 
     run, _ = trained_sample(tmp_path_factory.mktemp("sample"))
     out = tmp_path_factory.mktemp("site")
-    r = _dars("export-web", run, out, "--resolution", 64, "--texture", 256, "--level", f"{surface_level(run):.4f}",
+    r = _dars("export-web", run, out, "--resolution", 64, "--texture", 256, "--view-rays", 20000, "--level", f"{surface_level(run):.4f}",
               "--json")
     assert r.returncode == 0, r.stderr
     res = json.loads(r.stdout)

@@ -25,10 +25,10 @@ from ._checks import ConfigError, DarsError
 from .bake import PBRTextures, UVMesh
 from .io import atomic_write, write_png
 from .mesh import Mesh
-from .train.run import FieldCallables, Run, field_callables
+from .train.run import FieldCallables, Run, run_field_callables
 
-__all__ = ["AssetConfig", "Asset", "build_asset", "build_mesh", "bake_mesh", "depth_cameras", "asset_field",
-           "write_textures", "write_uv_obj"]
+__all__ = ["AssetConfig", "Asset", "build_asset", "build_mesh", "bake_mesh", "view_maps", "depth_cameras",
+           "asset_field", "write_textures", "write_uv_obj"]
 
 
 SEEN_RADIUS_VOXELS = 3.0
@@ -85,6 +85,17 @@ class AssetConfig:
     """Bake at this multiple of ``texture`` and box-filter down (1 or 2)."""
     ao_samples: int = 0
     """Rays per texel for ambient occlusion (0: none)."""
+    bake_from: Literal["views", "points"] = "views"
+    """``views``: the albedo of a texel is the mean of the field's own composited render over the training views
+    that see it (:mod:`toolkit.viewbake`: what the photos were fitted to, where the mesh point alone reads the field
+    off its surface; README, "The GLB against its field: the view-projected bake"); texels no view sees, and
+    fields without a renderer, fall back to ``points``. ``points``: the field's materials queried at each texel's
+    surface point."""
+    view_rays: int = 300_000
+    """``views``: at most this many rendered pixels over all training views (larger photos are rendered on a
+    smaller pixel grid, :func:`depth_cameras`)."""
+    view_tolerance: float = 0.1
+    """``views``: a view sees a texel when the texel's depth is within this fraction of the rendered depth."""
     device: str = "cpu"
     """Device the field is queried on."""
 
@@ -117,6 +128,12 @@ class AssetConfig:
             raise ConfigError(f"--supersample {self.supersample}: choose 1 or 2")
         if self.ao_samples < 0:
             raise ConfigError(f"--ao-samples {self.ao_samples} must be ≥ 0")
+        if self.bake_from not in ("views", "points"):
+            raise ConfigError(f"--bake-from {self.bake_from!r}: choose views or points")
+        if self.view_rays < 64:
+            raise ConfigError(f"--view-rays {self.view_rays} must be ≥ 64")
+        if not 0.0 < self.view_tolerance <= 0.5:
+            raise ConfigError(f"--view-tolerance {self.view_tolerance} must be in (0, 0.5]")
 
 
 @dataclass
@@ -151,9 +168,7 @@ def asset_field(run: str | Path | Run | FieldCallables) -> FieldCallables:
     if isinstance(run, FieldCallables):
         return run
     if isinstance(run, Run):
-        d, m = field_callables(run)
-        return FieldCallables(d, m, run.train_scene.aabb.clone(), run.l_env.detach().cpu().clone(),
-                              run.train_scene.cameras, run.field.space.to("cpu") if run.cfg.field.contraction else None)
+        return run_field_callables(run)
     run_dir = Path(run)
     if not run_dir.is_dir():
         raise DarsError(f"RUN directory not found: {run_dir} (give the --out directory of `dars train`)")
@@ -253,15 +268,39 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
     return mesh, stats
 
 
-def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=None) -> tuple[UVMesh, PBRTextures, dict]:
+def view_maps(field: FieldCallables, cfg: AssetConfig = AssetConfig(), log=None):
+    """The field's renders at its training cameras for the view-projected bake (``cfg.bake_from == "views"``), on
+    one pixel grid of at most ``cfg.view_rays`` pixels; None (the bake queries points) with ``bake_from="points"``
+    or when the field has no renderer or no cameras, which ``log`` is told."""
+    if cfg.bake_from != "views":
+        return None
+    views = field.views if isinstance(field, FieldCallables) else None
+    if views is None or field.cameras is None:
+        if log is not None:
+            log("[dars] --bake-from views: the field has no renderer or no training cameras; baking point queries")
+        return None
+    cams = depth_cameras(field.cameras, cfg.view_rays)
+    if log is not None:
+        log(f"[dars] rendering the {len(cams)} training views at {int(cams.width[0])}x{int(cams.height[0])} "
+            "for the view-projected bake")
+    return views(cams)
+
+
+def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=None,
+              views=None) -> tuple[UVMesh, PBRTextures, dict]:
     """The bake half: UV-unwrap ``mesh``, label its faces and bake PBR textures from ``material_fn``; ``log``: an
     optional callable told when the unwrap (xatlas, which reports no progress) starts and ends.
 
+    Args:
+        views: :class:`toolkit.viewbake.ViewMaps` (:func:`view_maps`): the albedo comes from the views that see each
+            texel (:func:`toolkit.viewbake.view_projected`); None: point queries only.
+
     Returns:
         (uvmesh, textures, statistics ``texture``, ``supersample``, ``uv_vertices``, timings, ``chart_coverage``,
-        ``defaults``).
+        ``defaults``, ``bake_from`` and, from views, ``views`` (count, size, tolerance, share of texels seen)).
     """
     from .bake import BakeConfig, UnwrapConfig, bake_pbr_textures, label_faces, unwrap_uv
+    from .viewbake import view_projected
 
     t0 = time.perf_counter()
     if log is not None:
@@ -271,16 +310,24 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
     if log is not None:
         log(f"[dars] UV atlas done in {t1 - t0:.0f} s")
     uvmesh = label_faces(uvmesh, material_fn, device=cfg.device)
-    textures = bake_pbr_textures(uvmesh, material_fn, BakeConfig(size=cfg.texture, supersample=cfg.supersample,
-                                                                  ao_samples=cfg.ao_samples, device=cfg.device))
+    seen: dict = {}
+    texel_fn = material_fn if views is None else view_projected(material_fn, views, cfg.view_tolerance, stats=seen)
+    textures = bake_pbr_textures(uvmesh, texel_fn, BakeConfig(size=cfg.texture, supersample=cfg.supersample,
+                                                               ao_samples=cfg.ao_samples, device=cfg.device))
     stats = {"texture": cfg.texture, "supersample": cfg.supersample, "uv_vertices": uvmesh.num_vertices,
              "unwrap_seconds": round(t1 - t0, 3), "bake_seconds": round(time.perf_counter() - t1, 3),
-             "chart_coverage": round(float(textures.mask.mean()), 4), "defaults": list(textures.defaults)}
+             "chart_coverage": round(float(textures.mask.mean()), 4), "defaults": list(textures.defaults),
+             "bake_from": "points" if views is None else "views"}
+    if views is not None:
+        stats["views"] = {"count": len(views.cameras), "width": int(views.cameras.width[0]),
+                          "height": int(views.cameras.height[0]), "tolerance": cfg.view_tolerance,
+                          "texels_seen": round(seen.get("seen", 0) / max(1, seen.get("points", 0)), 4)}
     return uvmesh, textures, stats
 
 
 def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = AssetConfig(), log=None) -> Asset:
-    """Field → mesh → baked textures: :func:`build_mesh` then :func:`bake_mesh`.
+    """Field → mesh → baked textures: :func:`build_mesh`, then :func:`bake_mesh` (from the field's renders at the
+    training views, :func:`view_maps`, by default).
 
     Args:
         run: a run directory, a loaded :class:`~toolkit.train.run.Run` or :class:`~toolkit.train.run.FieldCallables`.
@@ -292,7 +339,7 @@ def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = Asset
     """
     field = asset_field(run)
     mesh, stats = build_mesh(field, cfg)
-    uvmesh, textures, bake_stats = bake_mesh(mesh, field.material_fn, cfg, log=log)
+    uvmesh, textures, bake_stats = bake_mesh(mesh, field.material_fn, cfg, log=log, views=view_maps(field, cfg, log))
     stats["bake"] = bake_stats
     return Asset(mesh, uvmesh, textures, field.sh, stats)
 

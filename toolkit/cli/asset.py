@@ -65,6 +65,15 @@ def add_bake_options(q: argparse.ArgumentParser) -> None:
                    help="texture size in texels (square, 16-16384)")
     q.add_argument("--supersample", type=int, default=1, choices=(1, 2), help="bake at 2x and box-filter down")
     q.add_argument("--ao-samples", type=COUNT, default=0, help="rays per texel for ambient occlusion (0 = none)")
+    q.add_argument("--bake-from", choices=("views", "points"), default="views",
+                   help="views (default): a texel's albedo is the mean of the field's own render over the training "
+                        "views that see it (what the photos were fitted to); points: the field queried at the "
+                        "texel's surface point (also used where no view sees a texel)")
+    q.add_argument("--view-rays", type=number(int, min=64), default=300_000,
+                   help="--bake-from views: at most this many rendered pixels over all training views")
+    q.add_argument("--view-tolerance", type=number(float, above=0, max=0.5), default=0.1,
+                   help="--bake-from views: a view sees a texel when its depth is within this fraction of the "
+                        "rendered depth")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -107,7 +116,7 @@ def asset_config(args: argparse.Namespace):
 
     names = ("method", "resolution", "level", "level_quantile", "faces", "simplify", "min_component", "min_seen",
              "keep_unseen", "depth_samples", "depth_min_opacity", "depth_rays", "texture", "supersample", "ao_samples",
-             "device")
+             "bake_from", "view_rays", "view_tolerance", "device")
     return AssetConfig(**{k: getattr(args, k) for k in names if hasattr(args, k)})
 
 
@@ -160,7 +169,7 @@ def cmd_mesh(args: argparse.Namespace) -> int:
 
 
 def cmd_bake(args: argparse.Namespace) -> int:
-    from ..asset import asset_field, bake_mesh, write_textures, write_uv_obj
+    from ..asset import asset_field, bake_mesh, view_maps, write_textures, write_uv_obj
     from ..io import write_json
     from ..mesh import load_mesh
 
@@ -172,7 +181,7 @@ def cmd_bake(args: argparse.Namespace) -> int:
     out = _out(args, "bake", BAKE_FILES)
     mesh = load_mesh(mesh_path)
     field = asset_field(args.run)
-    uvmesh, textures, stats = bake_mesh(mesh, field.material_fn, cfg, log=log)
+    uvmesh, textures, stats = bake_mesh(mesh, field.material_fn, cfg, log=log, views=view_maps(field, cfg, log))
     with out:
         write_textures(textures, out.path)
         write_uv_obj(uvmesh, out.path / "mesh_uv.obj")

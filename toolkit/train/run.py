@@ -28,7 +28,8 @@ from .config import TrainConfig
 from .data import prepare_data
 from .folder import find_run, read_checkpoint, read_run_config, run_scene_options
 
-__all__ = ["Run", "load_run", "render_views", "FieldCallables", "field_callables", "load_field_callables"]
+__all__ = ["Run", "load_run", "render_views", "FieldCallables", "field_callables", "load_field_callables",
+           "run_field_callables", "render_view_maps"]
 
 
 @dataclass
@@ -131,15 +132,18 @@ def load_run(run_dir: str | Path, checkpoint: str | Path | None = None, device: 
         raise DarsError(f"checkpoint {ck_path} does not fit the run's config.json ({str(e).splitlines()[0][:200]}); "
                         "was it copied from another run? Use the checkpoint.pt written with this config.json") from e
     fld.eval()
-    wm = None
-    if with_weights and cfg.render_sampler.dars:
-        data_cfg = replace(cfg, albedo_supervision=False)
-        wm = prepare_data(scene, data_cfg, log=lambda m: None, priors_root=meta.get("priors_root"),
-                          with_images=False).weights
+    wm = _weight_maps(scene, cfg, meta) if with_weights and cfg.render_sampler.dars else None
     return Run(path=run_dir, cfg=cfg, scene_path=meta["scene"], split=meta.get("split", "train"), field=fld,
                background=bg.to(device), l_env=ck["l_env"].to(device),
                occupancy=occupancy, train_scene=scene,
                weight_maps=wm, step=int(ck["step"]), elapsed=float(ck["elapsed"]), meta=meta)
+
+
+def _weight_maps(scene: Scene, cfg: TrainConfig, meta: dict) -> PackedViews | None:
+    """The W maps of a run's training views (DARS at render time), from the priors it trained with."""
+    data_cfg = replace(cfg, albedo_supervision=False)
+    return prepare_data(scene, data_cfg, log=lambda m: None, priors_root=meta.get("priors_root"),
+                        with_images=False).weights
 
 
 def render_views(run: Run, cameras: Cameras, keys: list[str], out_dir: str | Path, *, limit: int = 0,
@@ -186,6 +190,9 @@ class FieldCallables(NamedTuple):
         cameras: the training cameras (TSDF fusion, unseen-face removal), or None.
         space: the field's :class:`toolkit.space.SceneSpace` (None: bounded by ``aabb``). With contraction the
             region to mesh comes from the training rays (:func:`toolkit.mesh.surface_region`).
+        views: ``views(cameras) -> ViewMaps``: the field's own composited renders (albedo, roughness, metallic,
+            depth, opacity) at ``cameras`` (:func:`render_view_maps`), for the view-projected bake
+            (:mod:`toolkit.viewbake`); None when the field has no renderer (the bake queries points).
     """
 
     density_fn: Callable
@@ -194,6 +201,7 @@ class FieldCallables(NamedTuple):
     sh: torch.Tensor | None
     cameras: Cameras | None
     space: Any = None
+    views: Callable | None = None
 
 
 def field_callables(run: Run, chunk: int = 65536):
@@ -245,7 +253,38 @@ def load_field_callables(run_dir: str | Path, checkpoint: str | Path | None = No
     Raises:
         DarsError: ``run_dir`` is not a training run.
     """
-    run = load_run(run_dir, checkpoint, with_weights=False)
+    return run_field_callables(load_run(run_dir, checkpoint, with_weights=False))
+
+
+def run_field_callables(run: Run) -> FieldCallables:
+    """:class:`FieldCallables` of a loaded run, with its renderer for the view-projected bake."""
     d, m = field_callables(run)
     return FieldCallables(d, m, run.train_scene.aabb.clone(), run.l_env.detach().cpu().clone(),
-                          run.train_scene.cameras, run.field.space.to("cpu") if run.cfg.field.contraction else None)
+                          run.train_scene.cameras, run.field.space.to("cpu") if run.cfg.field.contraction else None,
+                          lambda cameras: render_view_maps(run, cameras))
+
+
+VIEW_MAP_KEYS = ("albedo", "roughness", "metallic")
+"""The composited outputs :func:`render_view_maps` keeps (the material channels a GLB bakes)."""
+
+
+def render_view_maps(run: Run, cameras: Cameras, progress: bool = True):
+    """The run's own renders at ``cameras`` (one pixel grid), as :class:`toolkit.viewbake.ViewMaps`: composited
+    albedo (clamped to [0, 1]), roughness, metallic, depth and opacity, rendered with the run's settings (the DARS
+    sampler's W maps included when the run has them)."""
+    from tqdm import tqdm
+
+    from ..viewbake import ViewMaps
+
+    if run.cfg.render_sampler.dars and run.weight_maps is None:  # loaded without them (load_field_callables)
+        run.weight_maps = _weight_maps(run.train_scene, run.cfg, run.meta)
+    maps: dict[str, list] = {k: [] for k in (*VIEW_MAP_KEYS, "depth", "opacity")}
+    with torch.no_grad():
+        for i in tqdm(range(len(cameras)), desc="rendering views for the bake", file=sys.stderr, unit="view",
+                      disable=not progress):
+            o = run.render(cameras, i)
+            for k in maps:
+                maps[k].append(getattr(o, k).detach().float().cpu())
+    stacked = {k: torch.stack(v) for k, v in maps.items()}
+    stacked["albedo"] = stacked["albedo"].clamp(0, 1)
+    return ViewMaps(cameras.to("cpu"), stacked.pop("depth"), stacked.pop("opacity"), stacked)
