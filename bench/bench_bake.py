@@ -1,0 +1,103 @@
+"""The GLB against its field: the point-query bake against the view-projected bake, on the same mesh (issue 16's
+"moderngl preview of the GLB within 4 dB of the field's own render").
+
+For each run: the mesh is built once with ``dars export-asset``'s defaults (:func:`toolkit.asset.build_mesh`), then
+baked twice — ``--bake-from points`` (the field's materials at each texel's surface point) and ``--bake-from views``
+(each texel's albedo from the field's renders at the training views that see it, :mod:`toolkit.viewbake`) — and each
+GLB's moderngl preview is scored against the test photos beside the field's own render
+(``bench_train._asset_depth_and_preview``: all test views; the depth error where the scene has ground-truth depth).
+Prints one row per run and bake, the gap to the field, and the mean and worst gap over the runs.
+
+Usage: ``python bench/bench_bake.py --run RUN [--run RUN2 ...] [--threads 2] [--view-rays 300000]``. Without
+``--run`` it first trains the bundled sample for 300 steps (``bench/out/bake/sample_run``, a few minutes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+
+def _sample_run(out: Path, threads: int) -> Path:
+    run = out / "sample_run"
+    if not (run / "checkpoint.pt").is_file():
+        subprocess.run([sys.executable, "-m", "toolkit.cli", "train", str(ROOT / "samples" / "gallery"), "--out",
+                        str(run), "--steps", "300", "--threads", str(threads), "--quiet", "--force"], check=True,
+                       cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": str(threads)})
+    return run
+
+
+def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: float = 0.5) -> dict:
+    """Mesh ``run`` once, bake it from points and from views, export and score both GLBs."""
+    import torch
+
+    from bench_train import _asset_depth_and_preview
+    from export.gltf import export_gltf
+    from toolkit.asset import AssetConfig, asset_field, bake_mesh, build_mesh, view_maps
+
+    torch.set_num_threads(threads)
+    field = asset_field(run)
+    cfg = AssetConfig(view_rays=view_rays, depth_min_opacity=min_opacity)
+    t0 = time.perf_counter()
+    mesh, stats = build_mesh(field, cfg)
+    print(f"[bench_bake] {run}: mesh of {mesh.num_faces} faces ({stats['method']}) in "
+          f"{time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    t0 = time.perf_counter()
+    maps = view_maps(field, cfg)
+    render_s = time.perf_counter() - t0
+    rows = {}
+    for name, views in (("points", None), ("views", maps)):
+        t0 = time.perf_counter()
+        uvmesh, textures, bake = bake_mesh(mesh, field.material_fn, cfg, views=views)
+        d = out / name
+        d.mkdir(parents=True, exist_ok=True)
+        export_gltf(uvmesh, textures, d / "scene.glb", sh=field.sh)
+        seconds = time.perf_counter() - t0 + (render_s if views is not None else 0.0)
+        score = _asset_depth_and_preview(run, d, threads)
+        rows[name] = {**score, "gap_db": score["field_psnr"] - score["preview_psnr"], "bake_seconds": seconds,
+                      "views": bake.get("views")}
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--run", action="append", default=[], help="a training run (repeat for several)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--view-rays", type=int, default=300_000)
+    ap.add_argument("--depth-min-opacity", type=float, default=0.5, help="export-asset's option of that name")
+    ap.add_argument("--out", default=str(ROOT / "bench" / "out" / "bake"))
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    runs = [Path(r) for r in args.run] or [_sample_run(out, args.threads)]
+    results = {}
+    for k, run in enumerate(runs):
+        results[str(run)] = bake_both(run, out / f"run{k}", args.threads, args.view_rays,
+                                           args.depth_min_opacity)
+    print(f"{'run':<48} {'bake':<7} {'field dB':>9} {'preview dB':>11} {'gap dB':>7} {'depth m':>8} {'bake s':>7}")
+    for run, rows in results.items():
+        for name, r in rows.items():
+            depth = r["depth_error_median_m"]
+            print(f"{run[-48:]:<48} {name:<7} {r['field_psnr']:9.2f} {r['preview_psnr']:11.2f} {r['gap_db']:7.2f} "
+                  f"{'-' if depth is None else f'{depth:.3f}':>8} {r['bake_seconds']:7.0f}")
+    for name in ("points", "views"):
+        gaps = [rows[name]["gap_db"] for rows in results.values()]
+        print(f"{name}: gap to the field mean {sum(gaps) / len(gaps):.2f} dB, worst {max(gaps):.2f} dB "
+              f"over {len(gaps)} run(s) (issue 16's bound: 4 dB)")
+    gain = [rows["views"]["preview_psnr"] - rows["points"]["preview_psnr"] for rows in results.values()]
+    print(f"views vs points: preview {sum(gain) / len(gain):+.2f} dB mean, {min(gain):+.2f} dB worst")
+    (out / "bench_bake.json").write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
