@@ -36,6 +36,51 @@ def _sample_run(out: Path, threads: int) -> Path:
     return run
 
 
+def glb_albedo_scores(run: Path, glbs: dict[str, Path], threads: int) -> dict | None:
+    """Each GLB's albedo (the moderngl preview's albedo mode, linearised) against the test split's ground-truth
+    albedo, beside the field's own composited albedo, on the pixels every GLB covers inside the evaluation's
+    material region (``dars eval``'s mask: GT-labelled non-glass pixels with GT depth): MAE and scale-aligned MAE.
+    None when the scene has no ground-truth albedo."""
+    import numpy as np
+    import torch
+
+    from toolkit.evaluate import _material_region
+    from toolkit.io import srgb_to_linear
+    from toolkit.metrics import albedo_mae, albedo_mae_aligned
+    from toolkit.pinhole import PinholeCamera
+    from toolkit.train import load_run
+    from viewers.preview import OffscreenPreview, PreviewConfig
+
+    torch.set_num_threads(threads)
+    run_ = load_run(run)
+    sc = run_.load_split("test")
+    if not sc.has_extra("albedo"):
+        return None
+    extras = sc.extras_available()
+    extent = float(np.linalg.norm((run_.train_scene.aabb[1] - run_.train_scene.aabb[0]).numpy()))
+    preds: dict[str, list] = {"field": [], **{k: [] for k in glbs}}
+    gts, masks = [], []
+    for i in range(len(sc)):
+        depth = sc.load_extra(i, "depth") if "depth" in extras else None
+        labels = sc.load_extra(i, "semantic") if "semantic" in extras else None
+        masks.append(_material_region(sc, i, extras, depth, labels)[0])
+        gts.append(sc.load_extra(i, "albedo"))
+        with torch.no_grad():
+            preds["field"].append(run_.render(sc.cameras, i).albedo.clamp(0, 1).permute(2, 0, 1))
+    for k, path in glbs.items():
+        with OffscreenPreview(path) as view:
+            for i in range(len(sc)):
+                cam = PinholeCamera.from_cameras(sc.cameras, i, near=extent * 1e-3, far=extent * 10)
+                alb = view.render(cam, PreviewConfig(mode="albedo"))
+                masks[i] = masks[i] & torch.as_tensor(alb.mask)
+                lin = srgb_to_linear(np.asarray(alb.to_float(), np.float64))
+                preds[k].append(torch.as_tensor(lin, dtype=torch.float32).permute(2, 0, 1))
+    gt, m = torch.stack(gts), torch.stack(masks)
+    return {k: {"albedo_mae": float(albedo_mae(torch.stack(v), gt, m)),
+                "albedo_mae_aligned": float(albedo_mae_aligned(torch.stack(v), gt, m)[0]),
+                "pixels": int(m.sum())} for k, v in preds.items()}
+
+
 def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: float = 0.5) -> dict:
     """Mesh ``run`` once, bake it from points and from views, export and score both GLBs."""
     import torch
@@ -65,6 +110,11 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
         score = _asset_depth_and_preview(run, d, threads)
         rows[name] = {**score, "gap_db": score["field_psnr"] - score["preview_psnr"], "bake_seconds": seconds,
                       "views": bake.get("views")}
+    albedo = glb_albedo_scores(run, {name: out / name / "scene.glb" for name in rows}, threads)
+    if albedo is not None:
+        for name in rows:
+            rows[name]["albedo_vs_gt"] = albedo[name]
+        rows["field_albedo_vs_gt"] = albedo["field"]
     return rows
 
 
@@ -83,12 +133,19 @@ def main(argv=None) -> int:
     for k, run in enumerate(runs):
         results[str(run)] = bake_both(run, out / f"run{k}", args.threads, args.view_rays,
                                            args.depth_min_opacity)
-    print(f"{'run':<48} {'bake':<7} {'field dB':>9} {'preview dB':>11} {'gap dB':>7} {'depth m':>8} {'bake s':>7}")
+    print(f"{'run':<40} {'bake':<7} {'field dB':>9} {'preview dB':>11} {'gap dB':>7} {'depth m':>8} {'bake s':>7} "
+          f"{'albedo MAE (aligned) vs GT':>27}")
     for run, rows in results.items():
-        for name, r in rows.items():
-            depth = r["depth_error_median_m"]
-            print(f"{run[-48:]:<48} {name:<7} {r['field_psnr']:9.2f} {r['preview_psnr']:11.2f} {r['gap_db']:7.2f} "
-                  f"{'-' if depth is None else f'{depth:.3f}':>8} {r['bake_seconds']:7.0f}")
+        for name in ("points", "views"):
+            r = rows[name]
+            depth, alb = r["depth_error_median_m"], r.get("albedo_vs_gt")
+            alb_txt = "-" if alb is None else f"{alb['albedo_mae']:.3f} ({alb['albedo_mae_aligned']:.3f})"
+            print(f"{run[-40:]:<40} {name:<7} {r['field_psnr']:9.2f} {r['preview_psnr']:11.2f} {r['gap_db']:7.2f} "
+                  f"{'-' if depth is None else f'{depth:.3f}':>8} {r['bake_seconds']:7.0f} {alb_txt:>27}")
+        if "field_albedo_vs_gt" in rows:
+            f = rows["field_albedo_vs_gt"]
+            print(f"{'':<40} the field's own composited albedo vs GT: {f['albedo_mae']:.3f} "
+                  f"({f['albedo_mae_aligned']:.3f}) on {f['pixels']} pixels")
     for name in ("points", "views"):
         gaps = [rows[name]["gap_db"] for rows in results.values()]
         print(f"{name}: gap to the field mean {sum(gaps) / len(gaps):.2f} dB, worst {max(gaps):.2f} dB "
