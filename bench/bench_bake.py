@@ -81,7 +81,8 @@ def glb_albedo_scores(run: Path, glbs: dict[str, Path], threads: int) -> dict | 
                 "pixels": int(m.sum())} for k, v in preds.items()}
 
 
-def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: float = 0.5) -> dict:
+def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: float = 0.5,
+              min_component: float = 0.05) -> dict:
     """Mesh ``run`` once, bake it from points and from views, export and score both GLBs."""
     import torch
 
@@ -91,7 +92,7 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
 
     torch.set_num_threads(threads)
     field = asset_field(run)
-    cfg = AssetConfig(view_rays=view_rays, depth_min_opacity=min_opacity)
+    cfg = AssetConfig(view_rays=view_rays, depth_min_opacity=min_opacity, min_component=min_component)
     t0 = time.perf_counter()
     mesh, stats = build_mesh(field, cfg)
     print(f"[bench_bake] {run}: mesh of {mesh.num_faces} faces ({stats['method']}) in "
@@ -124,6 +125,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--view-rays", type=int, default=300_000)
     ap.add_argument("--depth-min-opacity", type=float, default=0.5, help="export-asset's option of that name")
+    ap.add_argument("--min-component", type=float, default=0.05, help="export-asset's option of that name")
     ap.add_argument("--out", default=str(ROOT / "bench" / "out" / "bake"))
     args = ap.parse_args(argv)
     out = Path(args.out)
@@ -132,7 +134,7 @@ def main(argv=None) -> int:
     results = {}
     for k, run in enumerate(runs):
         results[str(run)] = bake_both(run, out / f"run{k}", args.threads, args.view_rays,
-                                           args.depth_min_opacity)
+                                           args.depth_min_opacity, args.min_component)
     print(f"{'run':<40} {'bake':<7} {'field dB':>9} {'preview dB':>11} {'gap dB':>7} {'depth m':>8} {'bake s':>7} "
           f"{'albedo MAE (aligned) vs GT':>27}")
     for run, rows in results.items():
