@@ -5,8 +5,9 @@ For each run: the mesh is built once with ``dars export-asset``'s defaults (:fun
 baked twice — ``--bake-from points`` (the field's materials at each texel's surface point) and ``--bake-from views``
 (each texel's albedo from the field's renders at the training views that see it, :mod:`toolkit.viewbake`) — and each
 GLB's moderngl preview is scored against the test photos beside the field's own render
-(``bench_train._asset_depth_and_preview``: all test views; the depth error where the scene has ground-truth depth).
-Prints one row per run and bake, the gap to the field, and the mean and worst gap over the runs.
+(``bench_train._assets_depth_and_preview``: all test views, the field rendered once for both; the depth error where
+the scene has ground-truth depth; each GLB's albedo against the ground truth where the scene has it, beside the
+field's). Prints one row per run and bake, the gap to the field, and the mean and worst gap over the runs.
 
 Usage: ``python bench/bench_bake.py --run RUN [--run RUN2 ...] [--threads 2] [--view-rays 300000]``. Without
 ``--run`` it first trains the bundled sample for 300 steps (``bench/out/bake/sample_run``, a few minutes).
@@ -36,57 +37,12 @@ def _sample_run(out: Path, threads: int) -> Path:
     return run
 
 
-def glb_albedo_scores(run: Path, glbs: dict[str, Path], threads: int) -> dict | None:
-    """Each GLB's albedo (the moderngl preview's albedo mode, linearised) against the test split's ground-truth
-    albedo, beside the field's own composited albedo, on the pixels every GLB covers inside the evaluation's
-    material region (``dars eval``'s mask: GT-labelled non-glass pixels with GT depth): MAE and scale-aligned MAE.
-    None when the scene has no ground-truth albedo."""
-    import numpy as np
-    import torch
-
-    from toolkit.evaluate import _material_region
-    from toolkit.io import srgb_to_linear
-    from toolkit.metrics import albedo_mae, albedo_mae_aligned
-    from toolkit.pinhole import PinholeCamera
-    from toolkit.train import load_run
-    from viewers.preview import OffscreenPreview, PreviewConfig
-
-    torch.set_num_threads(threads)
-    run_ = load_run(run)
-    sc = run_.load_split("test")
-    if not sc.has_extra("albedo"):
-        return None
-    extras = sc.extras_available()
-    extent = float(np.linalg.norm((run_.train_scene.aabb[1] - run_.train_scene.aabb[0]).numpy()))
-    preds: dict[str, list] = {"field": [], **{k: [] for k in glbs}}
-    gts, masks = [], []
-    for i in range(len(sc)):
-        depth = sc.load_extra(i, "depth") if "depth" in extras else None
-        labels = sc.load_extra(i, "semantic") if "semantic" in extras else None
-        masks.append(_material_region(sc, i, extras, depth, labels)[0])
-        gts.append(sc.load_extra(i, "albedo"))
-        with torch.no_grad():
-            preds["field"].append(run_.render(sc.cameras, i).albedo.clamp(0, 1).permute(2, 0, 1))
-    for k, path in glbs.items():
-        with OffscreenPreview(path) as view:
-            for i in range(len(sc)):
-                cam = PinholeCamera.from_cameras(sc.cameras, i, near=extent * 1e-3, far=extent * 10)
-                alb = view.render(cam, PreviewConfig(mode="albedo"))
-                masks[i] = masks[i] & torch.as_tensor(alb.mask)
-                lin = srgb_to_linear(np.asarray(alb.to_float(), np.float64))
-                preds[k].append(torch.as_tensor(lin, dtype=torch.float32).permute(2, 0, 1))
-    gt, m = torch.stack(gts), torch.stack(masks)
-    return {k: {"albedo_mae": float(albedo_mae(torch.stack(v), gt, m)),
-                "albedo_mae_aligned": float(albedo_mae_aligned(torch.stack(v), gt, m)[0]),
-                "pixels": int(m.sum())} for k, v in preds.items()}
-
-
 def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: float = 0.5,
               min_component: float = 0.05) -> dict:
     """Mesh ``run`` once, bake it from points and from views, export and score both GLBs."""
     import torch
 
-    from bench_train import _asset_depth_and_preview
+    from bench_train import _assets_depth_and_preview
     from export.gltf import export_gltf
     from toolkit.asset import AssetConfig, asset_field, bake_mesh, build_mesh, view_maps
 
@@ -100,22 +56,17 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
     t0 = time.perf_counter()
     maps = view_maps(field, cfg)
     render_s = time.perf_counter() - t0
-    rows = {}
+    baked = {}
     for name, views in (("points", None), ("views", maps)):
         t0 = time.perf_counter()
         uvmesh, textures, bake = bake_mesh(mesh, field.material_fn, cfg, views=views)
-        d = out / name
-        d.mkdir(parents=True, exist_ok=True)
-        export_gltf(uvmesh, textures, d / "scene.glb", sh=field.sh)
-        seconds = time.perf_counter() - t0 + (render_s if views is not None else 0.0)
-        score = _asset_depth_and_preview(run, d, threads)
-        rows[name] = {**score, "gap_db": score["field_psnr"] - score["preview_psnr"], "bake_seconds": seconds,
-                      "views": bake.get("views")}
-    albedo = glb_albedo_scores(run, {name: out / name / "scene.glb" for name in rows}, threads)
-    if albedo is not None:
-        for name in rows:
-            rows[name]["albedo_vs_gt"] = albedo[name]
-        rows["field_albedo_vs_gt"] = albedo["field"]
+        (out / name).mkdir(parents=True, exist_ok=True)
+        export_gltf(uvmesh, textures, out / name / "scene.glb", sh=field.sh)
+        baked[name] = {"bake_seconds": time.perf_counter() - t0 + (render_s if views is not None else 0.0),
+                       "views": bake.get("views")}
+    rows = _assets_depth_and_preview(run, {name: out / name for name in baked}, threads, albedo_vs_gt=True)
+    for name, extra in baked.items():
+        rows[name].update(extra, gap_db=rows[name]["field_psnr"] - rows[name]["preview_psnr"])
     return rows
 
 

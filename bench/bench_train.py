@@ -200,41 +200,79 @@ print(json.dumps({'train_rays_s': cfg.batch_rays / dt, 'samples_per_ray': r['sam
 def _asset_depth_and_preview(run_dir: Path, asset_dir: Path, threads: int) -> dict:
     """Median depth error of the exported GLB on the test views (against the scene's ground-truth depth), and the
     moderngl preview's PSNR against the photos beside the field's own render's (all test views)."""
+    return _assets_depth_and_preview(run_dir, {"asset": asset_dir}, threads)["asset"]
+
+
+def _assets_depth_and_preview(run_dir: Path, asset_dirs: dict[str, Path], threads: int,
+                              albedo_vs_gt: bool = False) -> dict:
+    """:func:`_asset_depth_and_preview` of several GLBs of one run (``name -> export-asset folder``), the field
+    rendered once per test view for all of them.
+
+    With ``albedo_vs_gt`` and ground-truth albedo in the test split, also each GLB's albedo (the preview's albedo
+    mode, linearised) and the field's composited albedo against it, on ``dars eval``'s material pixels that every GLB
+    covers: ``albedo_mae``, ``albedo_mae_aligned`` and ``pixels`` under each name's ``albedo_vs_gt`` and under
+    ``"field_albedo_vs_gt"``."""
     import numpy as np
     import torch
 
     from export.gltf import load_glb
-    from toolkit.io import linear_to_srgb
-    from toolkit.metrics import mesh_depth_error, psnr
+    from toolkit.evaluate import _material_region
+    from toolkit.io import linear_to_srgb, srgb_to_linear
+    from toolkit.metrics import albedo_mae, albedo_mae_aligned, mesh_depth_error, psnr
     from toolkit.pinhole import PinholeCamera
     from toolkit.train import load_run
-    from viewers.preview import OffscreenPreview
+    from viewers.preview import OffscreenPreview, PreviewConfig
 
     torch.set_num_threads(threads)
     run = load_run(run_dir)
     sc = run.load_split("test")
-    glb = asset_dir / "scene.glb"
-    asset = load_glb(glb)
-    verts, faces = asset.vertices, asset.faces
-    depth_med, cover, p_field, p_view = [], [], [], []
+    extras = sc.extras_available()
+    with_albedo = albedo_vs_gt and "albedo" in extras
     extent = float(np.linalg.norm((run.train_scene.aabb[1] - run.train_scene.aabb[0]).numpy()))
     chw = lambda a: torch.as_tensor(np.asarray(a, np.float32)).permute(2, 0, 1)  # noqa: E731
-    with OffscreenPreview(glb) as view:
-        for i in range(len(sc)):
-            photo = sc.load_image(i)
-            if sc.has_extra("depth"):
-                e = mesh_depth_error(verts, faces, sc.cameras, i, sc.load_extra(i, "depth"))
-                depth_med.append(e["median"])
-                cover.append(e["coverage"])
-            with torch.no_grad():
-                o = run.render(sc.cameras, i)
-            p_field.append(float(psnr(linear_to_srgb(o.rgb.clamp(0, 1)).permute(2, 0, 1), photo)))
-            cam = PinholeCamera.from_cameras(sc.cameras, i, near=extent * 1e-3, far=extent * 10)
-            p_view.append(float(psnr(chw(view.render(cam).to_float()), photo)))
-    finite = [d for d in depth_med if np.isfinite(d)]
-    return {"depth_error_median_m": float(np.median(finite)) if finite else None,
-            "depth_coverage": float(np.mean(cover)) if cover else None,
-            "field_psnr": float(np.mean(p_field)), "preview_psnr": float(np.mean(p_view))}
+    photos = [sc.load_image(i) for i in range(len(sc))]
+    depths = [sc.load_extra(i, "depth") for i in range(len(sc))] if "depth" in extras else None
+    p_field, field_albedo, gt_albedo, masks = [], [], [], []
+    for i in range(len(sc)):
+        with torch.no_grad():
+            o = run.render(sc.cameras, i)
+        p_field.append(float(psnr(linear_to_srgb(o.rgb.clamp(0, 1)).permute(2, 0, 1), photos[i])))
+        if with_albedo:
+            labels = sc.load_extra(i, "semantic") if "semantic" in extras else None
+            masks.append(_material_region(sc, i, extras, None if depths is None else depths[i], labels)[0])
+            field_albedo.append(o.albedo.clamp(0, 1).permute(2, 0, 1))
+            gt_albedo.append(sc.load_extra(i, "albedo"))
+    res, glb_albedo = {}, {}
+    for name, asset_dir in asset_dirs.items():
+        glb = asset_dir / "scene.glb"
+        asset = load_glb(glb)
+        depth_med, cover, p_view = [], [], []
+        with OffscreenPreview(glb) as view:
+            for i in range(len(sc)):
+                if depths is not None:
+                    e = mesh_depth_error(asset.vertices, asset.faces, sc.cameras, i, depths[i])
+                    depth_med.append(e["median"])
+                    cover.append(e["coverage"])
+                cam = PinholeCamera.from_cameras(sc.cameras, i, near=extent * 1e-3, far=extent * 10)
+                p_view.append(float(psnr(chw(view.render(cam).to_float()), photos[i])))
+                if with_albedo:
+                    alb = view.render(cam, PreviewConfig(mode="albedo"))
+                    masks[i] = masks[i] & torch.as_tensor(alb.mask)
+                    glb_albedo.setdefault(name, []).append(
+                        torch.as_tensor(srgb_to_linear(np.asarray(alb.to_float(), np.float64)), dtype=torch.float32)
+                        .permute(2, 0, 1))
+        finite = [d for d in depth_med if np.isfinite(d)]
+        res[name] = {"depth_error_median_m": float(np.median(finite)) if finite else None,
+                     "depth_coverage": float(np.mean(cover)) if cover else None,
+                     "field_psnr": float(np.mean(p_field)), "preview_psnr": float(np.mean(p_view))}
+    if with_albedo:
+        gt, m = torch.stack(gt_albedo), torch.stack(masks)
+        score = lambda pred: {"albedo_mae": float(albedo_mae(pred, gt, m)),  # noqa: E731
+                              "albedo_mae_aligned": float(albedo_mae_aligned(pred, gt, m)[0]), "pixels": int(m.sum())}
+        for name, preds in glb_albedo.items():
+            res[name]["albedo_vs_gt"] = score(torch.stack(preds))
+        res["field_albedo_vs_gt"] = score(torch.stack(field_albedo))
+    return res
 
 
 def case_galleries(seeds: list[int], minutes: float, steps: int, threads: int, out_dir: Path, train_seed: int,
