@@ -27,6 +27,10 @@ Conventions (fixed; ``tests/test_gltf.py`` checks each):
      viewer sampling these mips reproduces the trained model's specular term;
   2. the raw SPEC-convention coefficients (incident radiance, real SH order 2, [9, 3], *our +z-up world frame*,
      before the axis conversion) in the root ``extras.dars.sh`` — the lossless copy our own tools read back.
+* **Backdrop.** ``dars export-asset`` adds the field's learned background (what the viewers draw where the mesh is
+  not: a gallery's sky, the white behind an object) in the root ``extras.dars.backdrop``: a lat-long map in our
+  +z-up world frame, linear radiance and a per-texel visibility (:class:`toolkit.backdrop.Backdrop`, passed in
+  ``extras``); :func:`load_glb` reads it into :attr:`GltfAsset.backdrop`. Other glTF viewers ignore it.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from typing import Any, Literal
 import numpy as np
 
 from toolkit._checks import ConfigError, DarsError, SceneError, check_shape
+from toolkit.backdrop import Backdrop
 
 __all__ = [
     "GltfConfig",
@@ -466,6 +471,8 @@ class GltfAsset:
         ibl: the ``EXT_lights_image_based`` light dict as stored, or None.
         ibl_images: decoded specular cube faces per mip (uint8 RGBD [s, s, 4]), or [].
         json: the whole glTF JSON.
+        backdrop: the field's learned background from ``extras.dars.backdrop`` (:class:`toolkit.backdrop.Backdrop`:
+            what the viewers draw where the mesh is not), or None.
     """
 
     vertices: np.ndarray
@@ -480,6 +487,7 @@ class GltfAsset:
     ibl: dict | None
     ibl_images: list[list[np.ndarray]]
     json: dict
+    backdrop: Any = None
 
 
 _NUMPY_OF = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
@@ -645,4 +653,5 @@ def _load_glb(path: Path) -> GltfAsset:
         ibl=ibl,
         ibl_images=ibl_images,
         json=root,
+        backdrop=Backdrop.from_json(dars["backdrop"], f"{path}: extras.dars.backdrop") if "backdrop" in dars else None,
     )

@@ -28,12 +28,13 @@ CUBE_SH[0] += 2.5
 CUBE_SH[2] += 0.8  # brighter from above
 
 
-def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True) -> Path:
+def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True, extras: dict | None = None) -> Path:
     """A unit cube centred at the origin as a GLB: 6 faces in a 3 x 2 atlas (``cell`` px per face, 2 px margins),
     per-face albedo / roughness / metallic (:data:`CUBE_ALBEDO` …), one semantic primitive per face.
 
     ``pattern``: a checker in the base colour and a ripple in the normal map of faces 0, 2, 4 (tilting the normal
     along the face's tangent); without it every face is flat and uniform (an analytic reference is exact).
+    ``extras``: merged into the GLB's ``extras.dars`` (e.g. a backdrop).
     """
     verts, uvs, nrms, faces, labels = [], [], [], [], []
     width, height = 3 * cell, 2 * cell
@@ -69,7 +70,8 @@ def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True) 
         nt[..., 0] = np.where(face % 2 == 0, ripple, 0.0)
     nt /= np.linalg.norm(nt, axis=-1, keepdims=True)
     normal = np.round((nt + 1) / 2 * 255).astype(np.uint8)
-    return export_gltf(uvm, PBRTextures(base_color, orm, normal, np.ones((height, width), bool)), path, sh=sh)
+    return export_gltf(uvm, PBRTextures(base_color, orm, normal, np.ones((height, width), bool)), path, sh=sh,
+                       extras=extras)
 
 
 # ------------------------------------------------------------------------------------------- trained sample (slow)

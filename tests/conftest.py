@@ -21,6 +21,20 @@ def shared(*parts: str) -> Path:
     return p
 
 
+@pytest.fixture(scope="module")
+def gl():
+    """A headless moderngl context (EGL/llvmpipe) for a test module; without one the test is skipped, saying why."""
+    from toolkit._checks import DarsError
+    from viewers.preview import create_headless_context
+
+    try:
+        ctx = create_headless_context()
+    except DarsError as e:
+        pytest.skip(f"no headless OpenGL 3.3 context (EGL/llvmpipe): {e}")
+    yield ctx
+    ctx.release()
+
+
 @pytest.fixture
 def sample_scene_path() -> Path:
     if not (SAMPLE / "transforms_train.json").is_file():

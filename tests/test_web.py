@@ -191,6 +191,38 @@ def test_page_renders_in_headless_chromium_like_dars_view(page, serve, tmp_path)
     assert psnr_db >= 30.0, f"page vs dars view: PSNR {psnr_db:.1f} dB (bound 30 dB)"
 
 
+def test_page_draws_the_backdrop_like_dars_view(serve, tmp_path):
+    """A GLB with a backdrop (toolkit.backdrop): the page draws it behind the model, blended with the SH radiance by
+    its visibility, as ``dars view`` does (a half-float texture there, float32 here)."""
+    from toolkit.backdrop import Backdrop
+    from viewers.preview import PreviewConfig, render_preview
+    from viewers.web import WebConfig, export_web, view_camera_from_web
+
+    rng = np.random.default_rng(8)
+    bd = Backdrop(rng.uniform(0, 1.2, (8, 16, 3)), rng.uniform(0, 1, (8, 16)))
+    glb = textured_cube(tmp_path / "cube.glb", extras={"backdrop": bd.to_json()})
+    try:
+        site = export_web(glb, tmp_path / "site")
+    except DarsError as e:
+        if "three.js not found" in str(e):
+            pytest.skip(f"three.js is not installed (node/npm missing?): {e}")
+        raise
+    light = json.loads(site.light_json.read_text())
+    assert light["background"] == "backdrop" and light["backdrop"]["height"] == 8
+    w, h = 320, 240
+    report = _web_check(serve(site.out_dir) + "/index.html?dpr=1&noaa", tmp_path / "page.png", w, h)
+    assert report["ready"] and not report["console_errors"] and not report["page_errors"], report
+    shot = read_image(tmp_path / "page.png")[..., :3]
+    cam = view_camera_from_web(light["camera"], w, h)
+    ref, sh_only = render_preview(glb, cam), render_preview(glb, cam, PreviewConfig(background="sh"))
+    sky = ~ref.mask
+    assert sky.mean() > 0.3 and np.abs(ref.to_float() - sh_only.to_float())[sky].mean() > 0.05  # a visible change
+    psnr_db = -10 * np.log10(max(float(((shot - ref.to_float()) ** 2).mean()), 1e-12))
+    assert psnr_db >= 30.0, f"page vs dars view with the backdrop: PSNR {psnr_db:.1f} dB (bound 30 dB)"
+    with pytest.raises(ConfigError, match="carries no backdrop"):
+        export_web(textured_cube(tmp_path / "plain.glb"), tmp_path / "plain", cfg=WebConfig(background="backdrop"))
+
+
 def test_page_with_threejs_stock_shading_loads(page, serve, tmp_path):
     report = _web_check(serve(page.out_dir) + "/index.html?dpr=1&shading=three", tmp_path / "stock.png", 160, 120)
     assert report["ready"] and not report["console_errors"] and not report["page_errors"], report

@@ -27,8 +27,8 @@ from .io import atomic_write, write_png
 from .mesh import Mesh
 from .train.run import FieldCallables, Run, run_field_callables
 
-__all__ = ["AssetConfig", "Asset", "build_asset", "build_mesh", "bake_mesh", "view_maps", "depth_cameras",
-           "asset_field", "write_textures", "write_uv_obj"]
+__all__ = ["AssetConfig", "Asset", "build_asset", "build_mesh", "bake_mesh", "view_maps", "build_backdrop",
+           "depth_cameras", "asset_field", "write_textures", "write_uv_obj"]
 
 
 SEEN_RADIUS_VOXELS = 3.0
@@ -96,6 +96,10 @@ class AssetConfig:
     smaller pixel grid, :func:`depth_cameras`)."""
     view_tolerance: float = 0.1
     """``views``: a view sees a texel when the texel's depth is within this fraction of the rendered depth."""
+    backdrop: bool = True
+    """Store the field's learned background in the GLB (:mod:`toolkit.backdrop`: what the viewers draw where the mesh
+    is not — a gallery's sky, the white behind an object), weighted per direction by how much of it the training
+    renders saw. Needs the renders of ``bake_from="views"`` (rendered for it alone with ``points``)."""
     device: str = "cpu"
     """Device the field is queried on."""
 
@@ -145,7 +149,9 @@ class Asset:
         uvmesh: the unwrapped mesh with per-face labels (what the GLB stores).
         textures: base colour, ORM and normal maps.
         sh: float [9, 3] the run's SH light (SPEC convention), or None.
-        stats: ``mesh_stats.json``: the mesh half's statistics, with the bake's under ``bake``.
+        stats: ``mesh_stats.json``: the mesh half's statistics, with the bake's under ``bake`` (and the backdrop's
+            under ``backdrop``).
+        backdrop: the field's learned background for the viewers (:mod:`toolkit.backdrop`), or None.
     """
 
     mesh: Mesh
@@ -153,10 +159,14 @@ class Asset:
     textures: PBRTextures
     sh: Any
     stats: dict
+    backdrop: Any = None
 
     def gltf_extras(self) -> dict:
-        """The statistics stored in the GLB's ``extras.dars``."""
-        return {"mesh_stats": {k: self.stats[k] for k in ("vertices", "faces", "area_m2", "method")}}
+        """What the GLB stores in its ``extras.dars``: the mesh statistics and the backdrop (when there is one)."""
+        extras: dict = {"mesh_stats": {k: self.stats[k] for k in ("vertices", "faces", "area_m2", "method")}}
+        if self.backdrop is not None:
+            extras["backdrop"] = self.backdrop.to_json()
+        return extras
 
 
 def asset_field(run: str | Path | Run | FieldCallables) -> FieldCallables:
@@ -268,22 +278,37 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
     return mesh, stats
 
 
+def _wants_backdrop(field, cfg: AssetConfig) -> bool:
+    return cfg.backdrop and isinstance(field, FieldCallables) and field.background is not None
+
+
 def view_maps(field: FieldCallables, cfg: AssetConfig = AssetConfig(), log=None):
-    """The field's renders at its training cameras for the view-projected bake (``cfg.bake_from == "views"``), on
-    one pixel grid of at most ``cfg.view_rays`` pixels; None (the bake queries points) with ``bake_from="points"``
-    or when the field has no renderer or no cameras, which ``log`` is told."""
-    if cfg.bake_from != "views":
+    """The field's renders at its training cameras for the view-projected bake (``cfg.bake_from == "views"``) and
+    the backdrop's visibility (``cfg.backdrop``), on one pixel grid of at most ``cfg.view_rays`` pixels; None when
+    neither wants them, or when the field has no renderer or no cameras (which ``log`` is told: the bake queries
+    points, the GLB gets no backdrop)."""
+    if cfg.bake_from != "views" and not _wants_backdrop(field, cfg):
         return None
     views = field.views if isinstance(field, FieldCallables) else None
     if views is None or field.cameras is None:
-        if log is not None:
+        if log is not None and cfg.bake_from == "views":
             log("[dars] --bake-from views: the field has no renderer or no training cameras; baking point queries")
         return None
     cams = depth_cameras(field.cameras, cfg.view_rays)
     if log is not None:
-        log(f"[dars] rendering the {len(cams)} training views at {int(cams.width[0])}x{int(cams.height[0])} "
-            "for the view-projected bake")
+        why = "the view-projected bake" if cfg.bake_from == "views" else "the backdrop's visibility"
+        log(f"[dars] rendering the {len(cams)} training views at {int(cams.width[0])}x{int(cams.height[0])} for {why}")
     return views(cams)
+
+
+def build_backdrop(field: FieldCallables, views, cfg: AssetConfig = AssetConfig()):
+    """The GLB's :class:`toolkit.backdrop.Backdrop` (the field's learned background and its visibility in ``views``,
+    :func:`view_maps`), or None: ``cfg.backdrop`` off, or a field without a background or without renders."""
+    if not _wants_backdrop(field, cfg) or views is None:
+        return None
+    from .backdrop import backdrop_from_views
+
+    return backdrop_from_views(field.background, views)
 
 
 def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=None,
@@ -339,9 +364,17 @@ def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = Asset
     """
     field = asset_field(run)
     mesh, stats = build_mesh(field, cfg)
-    uvmesh, textures, bake_stats = bake_mesh(mesh, field.material_fn, cfg, log=log, views=view_maps(field, cfg, log))
+    maps = view_maps(field, cfg, log)
+    uvmesh, textures, bake_stats = bake_mesh(mesh, field.material_fn, cfg, log=log,
+                                             views=maps if cfg.bake_from == "views" else None)
     stats["bake"] = bake_stats
-    return Asset(mesh, uvmesh, textures, field.sh, stats)
+    backdrop = build_backdrop(field, maps, cfg)
+    if backdrop is not None:
+        vis = backdrop.visibility
+        stats["backdrop"] = {"height": backdrop.shape[0], "width": backdrop.shape[1],
+                             "texels_seen": round(float((vis > 0).mean()), 4),
+                             "mean_visibility": round(float(vis.mean()), 4)}
+    return Asset(mesh, uvmesh, textures, field.sh, stats, backdrop)
 
 
 def write_textures(textures: PBRTextures, out: str | Path) -> None:

@@ -28,6 +28,7 @@ from .render import accumulate_along_rays, render_weights
 from .sampling import (OccupancyGrid, SamplerConfig, average_other_view_weights, coarse_samples, merge_samples,
                        proposal_weights, ray_budgets, sample_fine, stratified_edges)
 from .scene import Cameras, RayBundle, generate_rays
+from .sh import lookup_latlong
 from .shading import ShadingConfig, shade_pbr
 
 __all__ = ["Background", "DarsContext", "RenderConfig", "RenderInputs", "RenderOutputs", "RenderedImage", "render_rays",
@@ -79,25 +80,14 @@ class Background(nn.Module):
             return self.colour.to(directions).expand(directions.shape[0], 3)
         if self.mode == "learned":
             return torch.sigmoid(self.raw).to(directions).expand(directions.shape[0], 3)
-        env = self.env_map()
-        h, w, _ = env.shape
-        z = directions[:, 2].clamp(-1.0, 1.0)
-        theta = torch.acos(z)
-        phi = torch.atan2(directions[:, 0], directions[:, 1]) % (2 * math.pi)
-        # pixel centres at theta = pi (row + 0.5) / h, phi = 2 pi (col + 0.5) / w (SPEC lat-long)
-        r = (theta / math.pi * h - 0.5).clamp(0, h - 1)
-        c = phi / (2 * math.pi) * w - 0.5
-        r0 = r.floor().clamp(max=h - 2).long() if h > 1 else r.long()
-        fr = r - r0
-        c0f = c.floor()
-        fc = c - c0f
-        c0 = c0f.long() % w
-        c1 = (c0 + 1) % w
-        r1 = (r0 + 1).clamp(max=h - 1)
-        flat = env.reshape(-1, 3)
-        v = (flat[r0 * w + c0] * ((1 - fr) * (1 - fc))[:, None] + flat[r0 * w + c1] * ((1 - fr) * fc)[:, None]
-             + flat[r1 * w + c0] * (fr * (1 - fc))[:, None] + flat[r1 * w + c1] * (fr * fc)[:, None])
-        return v
+        return lookup_latlong(self.env_map(), directions)
+
+    def radiance_map(self) -> torch.Tensor:
+        """float [h, w, 3] the background as a lat-long linear radiance map in any mode (1×1 for ``constant`` and
+        ``learned``), sampled as :meth:`forward` does (:func:`toolkit.sh.lookup_latlong`)."""
+        if self.mode == "env":
+            return self.env_map()
+        return (self.colour if self.mode == "constant" else torch.sigmoid(self.raw)).reshape(1, 1, 3)
 
 
 @dataclass

@@ -11,9 +11,11 @@ The fragment shader calls ``dars_shade_pbr``, generated from :mod:`toolkit.shadi
   shading normal and view direction are rotated back to the dars world (+z up) where the SH lives.
 * Output: ``lit`` = linear radiance × 2^exposure → clamp → sRGB; ``albedo`` = base colour in sRGB; ``roughness`` /
   ``metallic`` = the value as grey; ``normals`` = world normal ``(n + 1)/2`` (as :func:`toolkit.visualise.colourise_normals`);
-  ``semantics`` = :data:`toolkit.visualise.LABEL_COLOURS` per semantic primitive (unlabelled black). Background: the SH
-  environment's radiance along each view ray (``lit``) or a flat grey; alpha is 1 on the mesh, 0 elsewhere (the
-  coverage mask of :class:`PreviewImage`).
+  ``semantics`` = :data:`toolkit.visualise.LABEL_COLOURS` per semantic primitive (unlabelled black). Background in
+  ``lit`` mode: the GLB's backdrop where it has one and the light is its own (:mod:`toolkit.backdrop`: the field's
+  learned background, blended per direction with the SH radiance by how much of it the training photos saw —
+  ``visibility · backdrop + (1 − visibility) · SH``), else the SH environment's radiance along each view ray; a flat
+  grey in the other modes. Alpha is 1 on the mesh, 0 elsewhere (the coverage mask of :class:`PreviewImage`).
 * No MSAA offscreen (one sample per pixel centre, like the field's renderer); the window asks for 4x MSAA.
 
 Headless rendering uses ``moderngl.create_standalone_context(backend="egl", require=330)`` (Mesa llvmpipe on CPU).
@@ -37,11 +39,12 @@ from .camera import default_camera, gltf_c2w, view_projection_gltf
 from .gl import create_headless_context
 from .shading_glsl import DFG_UNIFORM, GLSL_VERSION, dfg_texture_bytes, glsl_shading_source
 
-__all__ = ["MODES", "Mode", "PreviewConfig", "PreviewImage", "PreviewRenderer", "OffscreenPreview",
+__all__ = ["BACKGROUNDS", "MODES", "Mode", "PreviewConfig", "PreviewImage", "PreviewRenderer", "OffscreenPreview",
            "create_headless_context", "render_preview", "resolve_asset_path"]
 
 Mode = Literal["lit", "albedo", "roughness", "metallic", "normals", "semantics"]
 MODES: tuple[str, ...] = ("lit", "albedo", "roughness", "metallic", "normals", "semantics")
+BACKGROUNDS: tuple[str, ...] = ("auto", "backdrop", "sh", "colour")
 
 
 @dataclass(frozen=True)
@@ -52,8 +55,10 @@ class PreviewConfig:
     """What to show (module docstring)."""
     exposure: float = 0.0
     """Exposure in stops for ``lit``: colour × 2^exposure before the sRGB transfer."""
-    background: Literal["sh", "colour"] = "sh"
-    """``sh``: the environment's SH radiance behind the mesh in ``lit`` mode; ``colour``: ``background_colour``."""
+    background: Literal["auto", "backdrop", "sh", "colour"] = "auto"
+    """Behind the mesh in ``lit`` mode: ``backdrop``: the GLB's backdrop (:mod:`toolkit.backdrop`; an error when it
+    has none); ``sh``: the SH light's radiance; ``auto``: the backdrop when the GLB has one and the light is the
+    GLB's own (a relit view shows the new light's radiance), else ``sh``; ``colour``: ``background_colour``."""
     background_colour: tuple[float, float, float] = (0.08, 0.08, 0.08)
     """Display (sRGB) colour of the background when not drawing the SH environment."""
     shading: ShadingConfig = field(default_factory=ShadingConfig)
@@ -62,8 +67,8 @@ class PreviewConfig:
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ConfigError(f"mode={self.mode!r} is not valid: choose one of {', '.join(MODES)}")
-        if self.background not in ("sh", "colour"):
-            raise ConfigError(f"background={self.background!r} is not valid: choose 'sh' or 'colour'")
+        if self.background not in BACKGROUNDS:
+            raise ConfigError(f"background={self.background!r} is not valid: choose one of {', '.join(BACKGROUNDS)}")
         if not np.isfinite(self.exposure):
             raise ConfigError(f"exposure={self.exposure} must be finite")
 
@@ -204,15 +209,23 @@ uniform mat3 u_gltf_to_world;
 uniform vec3 u_sh[9];
 uniform float u_exposure_scale;
 uniform bool u_use_sh;
+uniform bool u_use_backdrop;
+uniform sampler2D u_backdrop;     // lat-long (toolkit.backdrop): rgb linear radiance, a visibility
 uniform vec3 u_colour;
 in vec2 v_ndc;
 out vec4 out_colour;
+const float PI = 3.14159265358979;
 void main() {
     if (!u_use_sh) { out_colour = vec4(u_colour, 0.0); return; }
     vec4 a = u_inv_view_proj * vec4(v_ndc, -1.0, 1.0);
     vec4 b = u_inv_view_proj * vec4(v_ndc, 1.0, 1.0);
     vec3 d = normalize(u_gltf_to_world * (b.xyz / b.w - a.xyz / a.w));  // the light arriving from d
     vec3 radiance = max(dars_sh_eval(u_sh, dars_sh_basis(d)), vec3(0.0));
+    if (u_use_backdrop) {  // u = phi / 2 pi (repeats), v = theta / pi (clamps): toolkit.sh.lookup_latlong
+        float phi = mod(atan(d.x, d.y), 2.0 * PI);
+        vec4 bd = texture(u_backdrop, vec2(phi / (2.0 * PI), acos(clamp(d.z, -1.0, 1.0)) / PI));
+        radiance = mix(radiance, max(bd.rgb, vec3(0.0)), clamp(bd.a, 0.0, 1.0));
+    }
     out_colour = vec4(dars_linear_to_srgb(clamp(radiance * u_exposure_scale, 0.0, 1.0)), 0.0);
 }
 """
@@ -304,8 +317,10 @@ class PreviewRenderer:
         self.dfg = self._keep(ctx.texture(size, 2, blob, dtype="f4"))
         self.dfg.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.dfg.repeat_x = self.dfg.repeat_y = False
+        self.backdrop = self._backdrop_texture(asset.backdrop)
         if sh is None:
             sh, _ = resolve_sh(asset)
+        self._own_sh = None if asset.sh is None else np.asarray(asset.sh, np.float64)
         self.set_sh(sh)
 
     # ------------------------------------------------------------------------------------------------ resources
@@ -332,6 +347,35 @@ class PreviewRenderer:
         tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
         tex.repeat_x = tex.repeat_y = False
         return tex
+
+    def _backdrop_texture(self, backdrop):
+        """RGBA float texture of the GLB's backdrop (rgb radiance, a visibility), or None."""
+        import moderngl
+
+        if backdrop is None:
+            return None
+        h, w = backdrop.shape
+        rgba = np.concatenate([backdrop.radiance, backdrop.visibility[..., None]], 2).astype(np.float32)
+        tex = self._keep(self.ctx.texture((w, h), 4, np.ascontiguousarray(rgba).tobytes(), dtype="f4"))
+        tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        tex.repeat_x, tex.repeat_y = True, False
+        return tex
+
+    def uses_backdrop(self, cfg: "PreviewConfig") -> bool:
+        """Whether ``cfg`` draws the GLB's backdrop behind the mesh (``PreviewConfig.background``).
+
+        Raises:
+            ConfigError: ``background="backdrop"`` on a GLB without one.
+        """
+        if cfg.mode != "lit" or cfg.background in ("sh", "colour"):
+            return False
+        if cfg.background == "backdrop":
+            if self.backdrop is None:
+                raise ConfigError("background='backdrop': this GLB carries no backdrop (exported before 2026-11-29 or "
+                                  "with --no-backdrop); use 'sh' or re-export it with `dars export-asset RUN`")
+            return True
+        return self.backdrop is not None and self._own_sh is not None \
+            and bool(np.allclose(np.asarray(self.sh, np.float64), self._own_sh, rtol=1e-5, atol=1e-6))
 
     def _pipeline(self, shading: ShadingConfig) -> tuple:
         """(mesh program, mesh VAO, background program, background VAO) for a shading config (compiled once)."""
@@ -375,7 +419,8 @@ class PreviewRenderer:
         exposure_scale = float(2.0 ** cfg.exposure)
         p, vao, bg, bg_vao = self._pipeline(cfg.shading)
         sh_value = [tuple(float(v) for v in row) for row in self.sh]
-        use_sh = cfg.mode == "lit" and cfg.background == "sh"
+        use_sh = cfg.mode == "lit" and cfg.background != "colour"
+        use_backdrop = self.uses_backdrop(cfg)
         ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         _write_mat(bg, "u_inv_view_proj", np.linalg.inv(view_proj))
@@ -384,6 +429,10 @@ class PreviewRenderer:
         _set(bg, "u_use_sh", use_sh)
         _set(bg, "u_colour", tuple(float(c) for c in cfg.background_colour))
         _set(bg, "u_sh", sh_value)
+        _set(bg, "u_use_backdrop", use_backdrop)
+        if use_backdrop:
+            self.backdrop.use(0)
+            _set(bg, "u_backdrop", 0)
         bg_vao.render(moderngl.TRIANGLES)
 
         ctx.enable(moderngl.DEPTH_TEST)

@@ -12,8 +12,11 @@
 
 ``scene_light.json``: ``lightprobe`` — 27 floats for ``new LightProbe(new SphericalHarmonics3().fromArray(...))``
 from :func:`toolkit.sh.sh_to_threejs_lightprobe` (our radiance SH rotated into three's +y-up frame, same basis);
-``sh_world`` — the SPEC coefficients [9, 3] (+z up, for reference); ``exposure`` (stops); ``background`` (``"sh"``
-or an sRGB triple); ``camera`` (three/glTF frame: ``position``, ``target``, ``fov_y_deg``, ``near``, ``far``);
+``sh_world`` — the SPEC coefficients [9, 3] (+z up, for reference); ``exposure`` (stops); ``background``
+(``"sh"``, ``"backdrop"`` or an sRGB triple); ``backdrop`` — the GLB's backdrop when drawn
+(:meth:`toolkit.backdrop.Backdrop.to_json`, uploaded as a half-float lat-long texture and blended with the SH
+radiance by its visibility, as ``dars view``); ``gltf_to_world`` (row-major 3×3: three's frame to the dars world,
+where the backdrop lives); ``camera`` (three/glTF frame: ``position``, ``target``, ``fov_y_deg``, ``near``, ``far``);
 ``xr_start`` (headset start: the camera's floor position and yaw); ``specular``; ``source``; ``three_version``.
 
 Shading on the page: three's ``MeshStandardMaterial`` from GLTFLoader keeps its texturing (sRGB base colour, ORM,
@@ -68,8 +71,11 @@ class WebConfig:
     """The page title."""
     exposure: float = 0.0
     """Exposure in stops (colour × 2^exposure before the sRGB transfer); ``?exposure=EV`` overrides it."""
-    background: str | tuple[float, float, float] = "sh"
-    """``"sh"``: the SH environment behind the model; or an sRGB colour."""
+    background: str | tuple[float, float, float] = "auto"
+    """Behind the model: ``"backdrop"``: the GLB's backdrop (the field's learned background where the photos saw it,
+    :mod:`toolkit.backdrop`; an error when the GLB has none); ``"sh"``: the SH environment; ``"auto"``: the backdrop
+    when the GLB has one and the page shows the GLB's own light, else ``"sh"`` (as ``dars view``); or an sRGB
+    colour."""
     specular: bool = True
     """Add the SH specular lobe to three's materials (False: the LightProbe's diffuse only)."""
     fov_y_deg: float = 50.0
@@ -224,8 +230,9 @@ def export_web(glb: str | Path, out_dir: str | Path, sh: np.ndarray | None = Non
 
     if not np.isfinite(cfg.exposure):
         raise ConfigError(f"exposure={cfg.exposure} must be finite")
-    if not (cfg.background == "sh" or (isinstance(cfg.background, tuple) and len(cfg.background) == 3)):
-        raise ConfigError(f"background={cfg.background!r}: use 'sh' or an (r, g, b) triple")
+    if not (cfg.background in ("auto", "sh", "backdrop")
+            or (isinstance(cfg.background, tuple) and len(cfg.background) == 3)):
+        raise ConfigError(f"background={cfg.background!r}: use 'auto', 'sh', 'backdrop' or an (r, g, b) triple")
     if not 1.0 < cfg.fov_y_deg < 170.0:
         raise ConfigError(f"fov_y_deg={cfg.fov_y_deg} must be in (1, 170)")
     glb = Path(glb)
@@ -237,6 +244,13 @@ def export_web(glb: str | Path, out_dir: str | Path, sh: np.ndarray | None = Non
         sh, default_source = resolve_sh(asset)
     else:
         sh, default_source = check_sh_coeffs(sh, "export_web sh"), "given"
+    background = cfg.background
+    own_light = asset.sh is not None and np.allclose(np.asarray(sh, np.float64), asset.sh, rtol=1e-5, atol=1e-6)
+    if background == "backdrop" and asset.backdrop is None:
+        raise ConfigError(f"background='backdrop': {glb} carries no backdrop (exported before 2026-11-29 or with "
+                          "--no-backdrop); use 'sh' or re-export it with `dars export-asset RUN`")
+    if background == "auto":
+        background = "backdrop" if asset.backdrop is not None and own_light else "sh"
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     vendor = vendor_threejs(three, out / "vendor" / "three")
@@ -258,7 +272,9 @@ def export_web(glb: str | Path, out_dir: str | Path, sh: np.ndarray | None = Non
         "lightprobe": sh_to_threejs_lightprobe(sh),
         "sh_world": [[float(v) for v in row] for row in np.asarray(sh)],
         "exposure": float(cfg.exposure),
-        "background": "sh" if cfg.background == "sh" else [float(c) for c in cfg.background],
+        "background": background if isinstance(background, str) else [float(c) for c in background],
+        "backdrop": asset.backdrop.to_json() if background == "backdrop" else None,
+        "gltf_to_world": [[float(v) for v in row] for row in WORLD_TO_GLTF.T],
         "specular": bool(cfg.specular),
         "camera": cam,
         "xr_start": _xr_start(cam, floor_y),

@@ -16,6 +16,7 @@ Outputs:
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 from .._checks import DarsError
@@ -60,7 +61,8 @@ def add_mesh_options(q: argparse.ArgumentParser) -> None:
     q.add_argument("--device", default="cpu", help="device the field is queried on")
 
 
-def add_bake_options(q: argparse.ArgumentParser) -> None:
+def add_bake_options(q: argparse.ArgumentParser, backdrop: bool = True) -> None:
+    """The bake options; ``backdrop``: also ``--no-backdrop`` (commands that write a GLB)."""
     q.add_argument("--texture", type=number(int, min=16, max=16384), default=1024,
                    help="texture size in texels (square, 16-16384)")
     q.add_argument("--supersample", type=int, default=1, choices=(1, 2), help="bake at 2x and box-filter down")
@@ -74,6 +76,10 @@ def add_bake_options(q: argparse.ArgumentParser) -> None:
     q.add_argument("--view-tolerance", type=number(float, above=0, max=0.5), default=0.1,
                    help="--bake-from views: a view sees a texel when its depth is within this fraction of the "
                         "rendered depth")
+    if backdrop:
+        q.add_argument("--no-backdrop", dest="backdrop", action="store_false",
+                       help="do not store the field's learned background in the GLB (the backdrop viewers draw where "
+                            "the mesh is not: a gallery's sky, the white behind an object)")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -89,7 +95,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("run", help="RUN directory (output of `dars train`)")
     q.add_argument("--mesh", default=None, help="mesh to bake (default RUN/mesh/mesh.ply; run `dars mesh` first)")
     q.add_argument("--out", default=None, help="output directory (default RUN/bake)")
-    add_bake_options(q)
+    add_bake_options(q, backdrop=False)
     q.add_argument("--device", default="cpu", help="device the field is queried on")
     q.add_argument("--force", action="store_true", help="write into a non-empty folder beside its files")
     q.add_argument("--json", action="store_true", help="machine-readable statistics on stdout")
@@ -116,7 +122,7 @@ def asset_config(args: argparse.Namespace):
 
     names = ("method", "resolution", "level", "level_quantile", "faces", "simplify", "min_component", "min_seen",
              "keep_unseen", "depth_samples", "depth_min_opacity", "depth_rays", "texture", "supersample", "ao_samples",
-             "bake_from", "view_rays", "view_tolerance", "device")
+             "bake_from", "view_rays", "view_tolerance", "backdrop", "device")
     return AssetConfig(**{k: getattr(args, k) for k in names if hasattr(args, k)})
 
 
@@ -173,7 +179,7 @@ def cmd_bake(args: argparse.Namespace) -> int:
     from ..io import write_json
     from ..mesh import load_mesh
 
-    cfg = asset_config(args)
+    cfg = replace(asset_config(args), backdrop=False)  # textures and an OBJ: no GLB to carry a backdrop
     _require_run(args.run)
     mesh_path = Path(args.mesh) if args.mesh else Path(args.run) / "mesh" / "mesh.ply"
     if not mesh_path.is_file():

@@ -53,8 +53,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="image width (default: the camera's, else 1280)")
     q.add_argument("--height", type=number(int, min=1, max=16384), default=None,
                    help="image height (default: keeps the camera's aspect, else 720)")
-    q.add_argument("--background", choices=("sh", "colour"), default="sh",
-                   help="lit mode: the SH environment (default) or a flat grey behind the mesh")
+    q.add_argument("--background", choices=("auto", "backdrop", "sh", "colour"), default="auto",
+                   help="lit mode, behind the mesh: auto (default): the GLB's backdrop (the field's learned "
+                        "background, where the photos saw it) unless relit, else the SH light; backdrop; sh; "
+                        "colour (flat grey)")
     q.add_argument("--screenshots", default=".", help="window mode: directory for screenshot PNGs (key p / F12)")
     q.add_argument("--json", action="store_true", help="machine-readable result on stdout (headless)")
     q.set_defaults(func=cmd_view)

@@ -193,6 +193,8 @@ class FieldCallables(NamedTuple):
         views: ``views(cameras) -> ViewMaps``: the field's own composited renders (albedo, roughness, metallic,
             depth, opacity) at ``cameras`` (:func:`render_view_maps`), for the view-projected bake
             (:mod:`toolkit.viewbake`); None when the field has no renderer (the bake queries points).
+        background: float [h, w, 3] the run's learned background as a lat-long linear radiance map
+            (:meth:`toolkit.pipeline.Background.radiance_map`; the GLB's backdrop, :mod:`toolkit.backdrop`), or None.
     """
 
     density_fn: Callable
@@ -202,6 +204,7 @@ class FieldCallables(NamedTuple):
     cameras: Cameras | None
     space: Any = None
     views: Callable | None = None
+    background: torch.Tensor | None = None
 
 
 def field_callables(run: Run, chunk: int = 65536):
@@ -261,7 +264,8 @@ def run_field_callables(run: Run) -> FieldCallables:
     d, m = field_callables(run)
     return FieldCallables(d, m, run.train_scene.aabb.clone(), run.l_env.detach().cpu().clone(),
                           run.train_scene.cameras, run.field.space.to("cpu") if run.cfg.field.contraction else None,
-                          lambda cameras: render_view_maps(run, cameras))
+                          lambda cameras: render_view_maps(run, cameras),
+                          run.background.radiance_map().detach().float().cpu().clone())
 
 
 VIEW_MAP_KEYS = ("albedo", "roughness", "metallic")

@@ -74,10 +74,39 @@ function useDarsShading(material) {
   material.needsUpdate = true;
 }
 
-// The SH environment behind the model: a sphere around the camera showing the SH radiance along each view ray.
-function makeSky(coefficients) {
+// The backdrop (toolkit.backdrop): the field's learned background as a lat-long half-float texture, rgb linear
+// radiance and a the visibility, in the dars world frame (+z up); rows clamp, columns wrap, linear filtering.
+function backdropTexture(backdrop) {
+  const { width, height, radiance, visibility } = backdrop;
+  const data = new Uint16Array(width * height * 4);
+  for (let i = 0; i < width * height; i++) {
+    for (let c = 0; c < 3; c++) data[4 * i + c] = THREE.DataUtils.toHalfFloat(radiance[3 * i + c]);
+    data[4 * i + 3] = THREE.DataUtils.toHalfFloat(visibility[i]);
+  }
+  const tex = new THREE.DataTexture(data, width, height, THREE.RGBAFormat, THREE.HalfFloatType);
+  tex.wrapS = THREE.RepeatWrapping;
+  tex.wrapT = THREE.ClampToEdgeWrapping;
+  tex.magFilter = THREE.LinearFilter;
+  tex.minFilter = THREE.LinearFilter;
+  tex.generateMipmaps = false;
+  tex.flipY = false;
+  tex.colorSpace = THREE.NoColorSpace;
+  tex.needsUpdate = true;
+  return tex;
+}
+
+// The environment behind the model: a sphere around the camera showing the SH radiance along each view ray, blended
+// with the backdrop by its visibility where the GLB has one (as `dars view`).
+function makeSky(coefficients, backdrop, gltfToWorld) {
+  const toWorld = new THREE.Matrix3();
+  if (gltfToWorld) toWorld.set(...gltfToWorld.flat());
   const material = new THREE.ShaderMaterial({
-    uniforms: { sh: { value: coefficients.map((c) => c.clone()) } },
+    uniforms: {
+      sh: { value: coefficients.map((c) => c.clone()) },
+      useBackdrop: { value: !!backdrop },
+      backdrop: { value: backdrop ? backdropTexture(backdrop) : null },
+      gltfToWorld: { value: toWorld },
+    },
     vertexShader: /* glsl */`
       varying vec3 vDir;
       void main() {
@@ -87,10 +116,20 @@ function makeSky(coefficients) {
       }`,
     fragmentShader: /* glsl */`
       uniform vec3 sh[ 9 ];
+      uniform bool useBackdrop;
+      uniform sampler2D backdrop;
+      uniform mat3 gltfToWorld;
       varying vec3 vDir;
       ${DARS_SHADING_GLSL}
       void main() {
         vec3 radiance = max( dars_sh_eval( sh, dars_sh_basis( normalize( vDir ) ) ), vec3( 0.0 ) );
+        if ( useBackdrop ) {  // u = phi / 2 pi, v = theta / pi in the dars world (toolkit.sh.lookup_latlong)
+          vec3 d = normalize( gltfToWorld * vDir );
+          float phi = mod( atan( d.x, d.y ), 6.283185307179586 );
+          float theta = acos( clamp( d.z, -1.0, 1.0 ) );
+          vec4 bd = texture2D( backdrop, vec2( phi / 6.283185307179586, theta / 3.141592653589793 ) );
+          radiance = mix( radiance, max( bd.rgb, vec3( 0.0 ) ), clamp( bd.a, 0.0, 1.0 ) );
+        }
         gl_FragColor = vec4( radiance, 1.0 );
         #include <tonemapping_fragment>
         #include <colorspace_fragment>
@@ -128,7 +167,9 @@ async function main() {
   const sh = new THREE.SphericalHarmonics3().fromArray(cfg.lightprobe);
   const probe = new THREE.LightProbe(sh, 1.0);
   scene.add(probe);
-  if (cfg.background === 'sh') scene.add(makeSky(sh.coefficients));
+  if (cfg.background === 'sh' || cfg.background === 'backdrop') {
+    scene.add(makeSky(sh.coefficients, cfg.background === 'backdrop' ? cfg.backdrop : null, cfg.gltf_to_world));
+  }
   else scene.background = new THREE.Color().setRGB(...cfg.background, THREE.SRGBColorSpace);
 
   const cam = cfg.camera;

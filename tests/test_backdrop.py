@@ -1,0 +1,159 @@
+"""toolkit.backdrop: the field's learned background travels in the GLB, weighted by how much of it the training renders
+saw, and the moderngl preview draws it behind the mesh."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from _viewer_assets import CUBE_SH, textured_cube
+from export.gltf import load_glb
+from toolkit._checks import ConfigError, SceneError, ShapeError
+from toolkit.asset import AssetConfig, build_asset
+from toolkit.backdrop import Backdrop, background_visibility, backdrop_from_views
+from toolkit.cameras import cameras_from_pinholes
+from toolkit.io import linear_to_srgb
+from toolkit.pinhole import PinholeCamera, look_at
+from toolkit.pipeline import Background
+from toolkit.scene import Cameras, generate_rays
+from toolkit.sh import eval_sh
+from toolkit.viewbake import ViewMaps
+
+SIZE = 16
+RNG = np.random.default_rng(5)
+
+
+def _views(opacities, eyes_targets, f=40.0):
+    """ViewMaps of cameras at ``(eye, target)`` pairs, each with one constant opacity."""
+    cams = cameras_from_pinholes([PinholeCamera(look_at(e, t, up=(0.0, 1.0, 0.0) if abs(t[2] - e[2]) > 0.5
+                                                        else (0.0, 0.0, 1.0)), f, f, SIZE / 2, SIZE / 2, SIZE, SIZE)
+                                  for e, t in eyes_targets])
+    v = len(eyes_targets)
+    opacity = torch.tensor(opacities, dtype=torch.float32)[:, None, None].expand(v, SIZE, SIZE).clone()
+    return ViewMaps(cams, torch.ones(v, SIZE, SIZE), opacity, {"albedo": torch.zeros(v, SIZE, SIZE, 3)})
+
+
+UP = ([0.0, 0.0, 0.0], [0.0, 0.0, 1.0])          # looks at the zenith (rows 0-1 of a 16-row map)
+ALONG_Y = ([0.0, 0.0, 0.0], [0.0, 1.0, 0.0])     # looks at the horizon at phi = 0 (rows 7-8, columns 31 and 0)
+
+
+def test_visibility_is_the_mean_transmittance_per_direction():
+    vis = background_visibility(_views([0.0, 0.25], [UP, ALONG_Y]), 16, 32)
+    assert vis.shape == (16, 32) and vis.dtype == np.float32
+    assert vis[0].min() == 1.0  # every texel of the zenith row: seen through nothing
+    np.testing.assert_allclose(vis[7:9][:, [31, 0]], 0.75, atol=1e-6)  # through opacity 0.25
+    assert vis[12:].max() == 0.0  # below the horizon no ray went: 0, the viewer draws the SH there
+    assert vis[4].max() == 0.0 and vis[7:9, 8:24].max() == 0.0
+    closed = background_visibility(_views([1.0, 1.0], [UP, ALONG_Y]), 16, 32)
+    assert closed.max() == 0.0  # a closed room: the background was never seen
+
+
+def test_backdrop_from_views_and_its_sampling():
+    bg = Background("env")
+    with torch.no_grad():
+        bg.raw.copy_(torch.randn_like(bg.raw))
+    views = _views([0.0, 0.25], [UP, ALONG_Y])
+    bd = backdrop_from_views(bg.radiance_map(), views)
+    np.testing.assert_allclose(bd.radiance, bg.env_map().detach().numpy(), rtol=1e-6)
+    d = torch.nn.functional.normalize(torch.randn(500, 3), dim=-1)
+    rad, vis = bd.sample(d)
+    torch.testing.assert_close(rad, bg(d).detach(), rtol=1e-5, atol=1e-6)  # filtered as the field renders it
+    assert vis.shape == (500,) and float(vis.min()) >= 0.0 and float(vis.max()) <= 1.0
+    # a one-colour background (an object on white): the visibility keeps its directions
+    white = backdrop_from_views(Background("constant").radiance_map(), views)
+    assert white.shape == (16, 32) and np.allclose(white.radiance, 1.0)
+    assert white.visibility[0].min() == 1.0 and white.visibility[12:].max() == 0.0
+
+
+def test_backdrop_json_round_trip_and_errors():
+    bd = Backdrop(RNG.uniform(0, 3, (4, 8, 3)), RNG.uniform(0, 1, (4, 8)))
+    back = Backdrop.from_json(json.loads(json.dumps(bd.to_json())))
+    np.testing.assert_allclose(back.radiance, bd.radiance, atol=1e-6)
+    np.testing.assert_allclose(back.visibility, bd.visibility, atol=1e-4)
+    d = bd.to_json()
+    with pytest.raises(SceneError, match="where.glb: 31 radiance"):
+        Backdrop.from_json({**d, "radiance": d["radiance"][:-65]}, "where.glb")
+    with pytest.raises(SceneError, match="not a backdrop"):
+        Backdrop.from_json({"height": 4}, "where.glb")
+    with pytest.raises(ShapeError, match="expected \\(4, 8\\)"):
+        Backdrop(np.zeros((4, 8, 3)), np.zeros((8, 4)))
+    with pytest.raises(SceneError, match="non-finite"):
+        Backdrop(np.full((1, 1, 3), np.nan), np.zeros((1, 1)))
+    clipped = Backdrop(np.full((1, 1, 3), -1.0), np.full((1, 1), 2.0))
+    assert clipped.radiance.min() == 0.0 and clipped.visibility.max() == 1.0
+
+
+def _sphere_field(calls):
+    from test_asset import _sphere
+
+    def views(cams):  # nothing opaque anywhere: every texel of the bake falls back to points, the sky is all seen
+        calls.append(len(cams))
+        v, h, w = len(cams), int(cams.height[0]), int(cams.width[0])
+        return ViewMaps(cams, torch.ones(v, h, w), torch.zeros(v, h, w), {"albedo": torch.zeros(v, h, w, 3)})
+
+    ring = np.linspace(0, 2 * np.pi, 6, endpoint=False)
+    cams = cameras_from_pinholes([PinholeCamera(look_at([2 * np.cos(a), 2 * np.sin(a), 0.3], [0, 0, 0]), 20.0, 20.0,
+                                                8.0, 6.0, 16, 12) for a in ring])
+    return _sphere()._replace(cameras=cams, views=views, background=torch.rand(16, 32, 3))
+
+
+def test_build_asset_stores_the_backdrop_in_the_glb(tmp_path):
+    from toolkit.cli.asset import export_glb
+
+    calls = []
+    field = _sphere_field(calls)
+    cfg = AssetConfig(method="mc", resolution=32, faces=600, texture=64, level=100.0)
+    asset = build_asset(field, cfg)
+    assert calls == [6] and asset.backdrop is not None  # one render of the views, for the bake and the backdrop
+    np.testing.assert_allclose(asset.backdrop.radiance, field.background.numpy(), rtol=1e-6)
+    st = asset.stats["backdrop"]
+    assert st["height"] == 16 and st["width"] == 32 and 0 < st["texels_seen"] < 1 and st["mean_visibility"] > 0
+    glb = export_glb(asset, tmp_path / "scene.glb", sh=asset.sh)
+    loaded = load_glb(glb)
+    np.testing.assert_allclose(loaded.backdrop.radiance, asset.backdrop.radiance, atol=1e-6)
+    np.testing.assert_allclose(loaded.backdrop.visibility, asset.backdrop.visibility, atol=1e-4)
+    # --no-backdrop with the point bake renders no views at all; --no-backdrop alone keeps the views bake
+    calls.clear()
+    none = build_asset(field, AssetConfig(**{**cfg.__dict__, "backdrop": False, "bake_from": "points"}))
+    assert calls == [] and none.backdrop is None and "backdrop" not in none.stats
+    assert "backdrop" not in none.gltf_extras()
+    points = build_asset(field, AssetConfig(**{**cfg.__dict__, "bake_from": "points"}))
+    assert calls == [6] and points.backdrop is not None and points.stats["bake"]["bake_from"] == "points"
+    assert load_glb(textured_cube(tmp_path / "plain.glb")).backdrop is None
+
+
+def test_preview_draws_the_backdrop_behind_the_mesh(gl, tmp_path):
+    from viewers.preview import OffscreenPreview, PreviewConfig
+
+    bd = Backdrop(RNG.uniform(0, 1.2, (8, 16, 3)), RNG.uniform(0, 1, (8, 16)))
+    glb = textured_cube(tmp_path / "cube.glb", extras={"backdrop": bd.to_json()})
+    loaded = load_glb(glb).backdrop
+    cam = PinholeCamera(look_at([1.4, -2.2, 1.3], [0, 0, 0]), 90.0, 90.0, 80.0, 60.0, 160, 120)
+    c = Cameras(torch.tensor(cam.c2w, dtype=torch.float32)[None], torch.tensor([cam.fx]), torch.tensor([cam.fy]),
+                torch.tensor([cam.cx]), torch.tensor([cam.cy]), torch.tensor([cam.width]), torch.tensor([cam.height]))
+    d = generate_rays(c, [0]).directions.double()
+    rad, vis = loaded.sample(d)
+    sky = eval_sh(torch.as_tensor(CUBE_SH), d).clamp_min(0.0)
+    expected = linear_to_srgb((vis[:, None] * rad + (1 - vis[:, None]) * sky).clamp(0, 1)).reshape(120, 160, 3)
+    expected = np.round(expected.numpy() * 255)
+    with OffscreenPreview(glb, ctx=gl) as view:
+        auto = view.render(cam)
+        sh_only = view.render(cam, PreviewConfig(background="sh"))
+        explicit = view.render(cam, PreviewConfig(background="backdrop"))
+        miss = ~auto.mask
+        assert 0.3 < miss.mean() < 0.95
+        err = np.abs(auto.image.astype(float) - expected)[miss]
+        assert err.max() <= 3 and err.mean() < 0.5, f"backdrop off by {err.max()}/255 (mean {err.mean():.2f})"
+        assert np.array_equal(explicit.image, auto.image)
+        assert np.array_equal(auto.image[auto.mask], sh_only.image[auto.mask])  # the mesh is drawn the same
+        assert np.abs(auto.image.astype(int) - sh_only.image.astype(int))[miss].max() > 20  # the sky is not
+        view.renderer.set_sh(CUBE_SH * 1.5)  # relit: the captured sky does not belong to the new light
+        relit, relit_sh = view.render(cam), view.render(cam, PreviewConfig(background="sh"))
+        assert np.array_equal(relit.image, relit_sh.image)
+    with OffscreenPreview(textured_cube(tmp_path / "plain.glb"), ctx=gl) as view:
+        with pytest.raises(ConfigError, match="carries no backdrop"):
+            view.render(cam, PreviewConfig(background="backdrop"))
+        assert np.array_equal(view.render(cam).image, view.render(cam, PreviewConfig(background="sh")).image)
+    with pytest.raises(ConfigError, match="background='sky'"):
+        PreviewConfig(background="sky")

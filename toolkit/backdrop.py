@@ -1,0 +1,143 @@
+"""Stage 13d — the backdrop: what a GLB's viewer draws where the mesh is not (the field's learned background).
+
+The GLB holds the room's surfaces; the sky over a gallery without a ceiling, the view out of a window and the
+white behind an object photographed on a transparent background are not surfaces, and the mesh region leaves them
+out on purpose. The field drew them with its learned background (:class:`toolkit.pipeline.Background`, a
+lat-long radiance map), and a preview without it drew the SH light's radiance there instead: on validation gallery
+1000000 the pixels the mesh does not cover held 65 % of the preview's squared error (README, "The GLB against its
+field").
+
+The background map is trained only along the directions in which the training rays left the scene. In a closed
+room almost no ray does, and its texels keep their start value. So the backdrop carries, beside the radiance, a
+**visibility** per texel: the mean transmittance (1 − rendered opacity) of the training pixels whose ray points into
+that texel (:func:`background_visibility`, from the same renders as the view-projected bake); texels no training
+pixel points into get 0. A viewer draws ``visibility · backdrop + (1 − visibility) · SH radiance`` behind the mesh:
+the learned background where the photos saw it, the light's radiance elsewhere (as before).
+
+The GLB stores it in its root ``extras.dars.backdrop`` (:meth:`Backdrop.to_json`); :func:`export.gltf.load_glb`
+reads it back, :mod:`viewers.preview` draws it (``PreviewConfig.background``).
+
+Example:
+    >>> maps = field.views(depth_cameras(field.cameras, 300_000))     # doctest: +SKIP
+    >>> backdrop = backdrop_from_views(field.background, maps)        # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ._checks import SceneError, ShapeError
+from .cameras import generate_rays
+from .sh import lookup_latlong
+
+__all__ = ["Backdrop", "background_visibility", "backdrop_from_views"]
+
+CONVENTION = ("lat-long, world frame (+z up): row 0 at +z, pixel centres at theta = pi (row + 0.5) / h and "
+              "phi = atan2(x, y) = 2 pi (col + 0.5) / w; bilinear, wrapping in phi, clamped in theta; radiance linear")
+
+CONSTANT_SHAPE = (16, 32)
+"""Lat-long size of the backdrop of a constant (one-colour) background: the visibility's resolution."""
+
+
+@dataclass(frozen=True)
+class Backdrop:
+    """The background a viewer draws behind the mesh (module docstring).
+
+    Attributes:
+        radiance: float32 [h, w, 3] linear radiance, lat-long (:data:`CONVENTION`).
+        visibility: float32 [h, w] in [0, 1]: how much of the training photos' light came from the background in
+            each texel's direction (0: never seen; the viewer draws the SH radiance there).
+    """
+
+    radiance: np.ndarray
+    visibility: np.ndarray
+
+    def __post_init__(self):
+        r, v = np.asarray(self.radiance), np.asarray(self.visibility)
+        if r.ndim != 3 or r.shape[2] != 3 or r.shape[0] < 1 or r.shape[1] < 1:
+            raise ShapeError(f"Backdrop.radiance has shape {r.shape}; expected [h, w, 3]")
+        if v.shape != r.shape[:2]:
+            raise ShapeError(f"Backdrop.visibility has shape {v.shape}; expected {r.shape[:2]} like the radiance")
+        if not (np.isfinite(r).all() and np.isfinite(v).all()):
+            raise SceneError("Backdrop: non-finite radiance or visibility")
+        object.__setattr__(self, "radiance", np.ascontiguousarray(np.clip(r, 0.0, None), np.float32))
+        object.__setattr__(self, "visibility", np.ascontiguousarray(np.clip(v, 0.0, 1.0), np.float32))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(h, w)."""
+        return int(self.radiance.shape[0]), int(self.radiance.shape[1])
+
+    def sample(self, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(radiance [R, 3], visibility [R]) along unit world directions [R, 3], filtered as a viewer does."""
+        both = torch.cat([torch.from_numpy(self.radiance), torch.from_numpy(self.visibility)[..., None]], -1)
+        v = lookup_latlong(both.to(directions), directions)
+        return v[:, :3], v[:, 3]
+
+    def to_json(self) -> dict:
+        """The GLB's ``extras.dars.backdrop`` (lossless to float32 within JSON's decimal digits)."""
+        h, w = self.shape
+        return {"convention": CONVENTION, "height": h, "width": w,
+                "radiance": [round(float(x), 6) for x in self.radiance.reshape(-1)],
+                "visibility": [round(float(x), 4) for x in self.visibility.reshape(-1)]}
+
+    @classmethod
+    def from_json(cls, d: dict, source: str = "extras.dars.backdrop") -> "Backdrop":
+        """Read :meth:`to_json`'s dict back.
+
+        Raises:
+            SceneError: missing keys or sizes that do not match (naming ``source``).
+        """
+        try:
+            h, w = int(d["height"]), int(d["width"])
+            r = np.asarray(d["radiance"], np.float32)
+            v = np.asarray(d["visibility"], np.float32)
+        except (KeyError, TypeError, ValueError) as e:
+            raise SceneError(f"{source}: not a backdrop ({type(e).__name__}: {e}); re-export the asset") from e
+        if h < 1 or w < 1 or r.size != h * w * 3 or v.size != h * w:
+            raise SceneError(f"{source}: {r.size} radiance and {v.size} visibility values for a {h}x{w} map; "
+                             "re-export the asset")
+        return cls(r.reshape(h, w, 3), v.reshape(h, w))
+
+
+def _texel_of(directions: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """int [R] the lat-long texel (row-major) a unit direction falls in."""
+    theta = torch.acos(directions[:, 2].clamp(-1.0, 1.0))
+    phi = torch.atan2(directions[:, 0], directions[:, 1]) % (2 * math.pi)
+    r = (theta / math.pi * h).long().clamp(0, h - 1)
+    c = (phi / (2 * math.pi) * w).long().clamp(0, w - 1)
+    return r * w + c
+
+
+def background_visibility(views, height: int, width: int) -> np.ndarray:
+    """float32 [height, width]: per lat-long texel, the mean transmittance (1 − opacity) of the pixels of ``views``
+    (:class:`toolkit.viewbake.ViewMaps`, the field's renders at its training cameras) whose ray points into it;
+    0 where no pixel does."""
+    if height < 1 or width < 1:
+        raise ShapeError(f"background_visibility: a {height}x{width} map")
+    total = torch.zeros(height * width, dtype=torch.float64)
+    count = torch.zeros(height * width, dtype=torch.float64)
+    cams = views.cameras.to("cpu")
+    for i in range(len(cams)):
+        d = generate_rays(cams, [i]).directions
+        t = _texel_of(d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12), height, width)
+        total.index_add_(0, t, (1.0 - views.opacity[i].reshape(-1).double()).clamp(0.0, 1.0))
+        count.index_add_(0, t, torch.ones_like(t, dtype=torch.float64))
+    vis = torch.where(count > 0, total / count.clamp_min(1.0), torch.zeros_like(total))
+    return vis.reshape(height, width).float().numpy()
+
+
+def backdrop_from_views(radiance: torch.Tensor | np.ndarray, views) -> Backdrop:
+    """The :class:`Backdrop` of a field's learned background map (float [h, w, 3] linear radiance:
+    :meth:`toolkit.pipeline.Background.radiance_map`) with its visibility from ``views``
+    (:func:`background_visibility`)."""
+    rad = torch.as_tensor(radiance).detach().float().cpu().numpy()
+    if rad.ndim != 3 or rad.shape[2] != 3:
+        raise ShapeError(f"backdrop_from_views: radiance has shape {rad.shape}; expected [h, w, 3]")
+    if rad.shape[:2] == (1, 1):  # a constant background: the visibility still varies with direction
+        rad = np.repeat(np.repeat(rad, CONSTANT_SHAPE[0], 0), CONSTANT_SHAPE[1], 1)
+    return Backdrop(rad, background_visibility(views, rad.shape[0], rad.shape[1]))
