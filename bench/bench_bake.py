@@ -9,7 +9,8 @@ one (``backdrop``, export-asset's default: the field's learned background where 
 :mod:`toolkit.backdrop`). Each GLB's moderngl preview is scored against the test photos beside the field's own render
 (``bench_train._assets_depth_and_preview``: all test views, the field rendered once for both; the depth error where
 the scene has ground-truth depth; each GLB's albedo against the ground truth where the scene has it, beside the
-field's). Prints one row per run and bake, the gap to the field, and the mean and worst gap over the runs.
+field's). Prints one row per run and bake, the gap to the field, and the mean and worst gap over the runs, and writes
+``OUT/runK/compare.png`` per run to look at: photo | field | each GLB's preview on three test views.
 
 Usage: ``python bench/bench_bake.py --run RUN [--run RUN2 ...] [--threads 2] [--view-rays 300000]``. Without
 ``--run`` it first trains the bundled sample for 300 steps (``bench/out/bake/sample_run``, a few minutes).
@@ -76,7 +77,38 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
     rows = _assets_depth_and_preview(run, {name: out / name for name in baked}, threads, albedo_vs_gt=True)
     for name, extra in baked.items():
         rows[name].update(extra, gap_db=rows[name]["field_psnr"] - rows[name]["preview_psnr"])
+    rows["comparison_png"] = str(write_comparison(run, {name: out / name for name in baked}, out / "compare.png"))
     return rows
+
+
+def write_comparison(run_dir: Path, asset_dirs: dict, out_png: Path, n: int = 3) -> Path:
+    """A PNG grid to look at: one row per test view (``n`` evenly spread), columns photo | the field's render | each
+    GLB's moderngl preview (in ``asset_dirs`` order)."""
+    import numpy as np
+    import torch
+
+    from toolkit.io import linear_to_srgb, write_png
+    from toolkit.pinhole import PinholeCamera
+    from toolkit.train import load_run
+    from toolkit.visualise import tile
+    from viewers.preview import OffscreenPreview
+
+    run = load_run(run_dir)
+    sc = run.load_split("test")
+    extent = float(np.linalg.norm((run.train_scene.aabb[1] - run.train_scene.aabb[0]).numpy()))
+    idx = np.linspace(0, len(sc) - 1, min(n, len(sc))).round().astype(int)
+    rows = []
+    for i in idx:
+        with torch.no_grad():
+            o = run.render(sc.cameras, int(i))
+        rows.append([sc.load_image(int(i)).permute(1, 2, 0).numpy(), linear_to_srgb(o.rgb.clamp(0, 1)).numpy()])
+    for asset_dir in asset_dirs.values():
+        with OffscreenPreview(asset_dir / "scene.glb") as view:
+            for row, i in zip(rows, idx):
+                cam = PinholeCamera.from_cameras(sc.cameras, int(i), near=extent * 1e-3, far=extent * 10)
+                row.append(view.render(cam).to_float())
+    write_png(out_png, tile(rows))
+    return out_png
 
 
 def main(argv=None) -> int:
@@ -105,6 +137,7 @@ def main(argv=None) -> int:
             alb_txt = "-" if alb is None else f"{alb['albedo_mae']:.3f} ({alb['albedo_mae_aligned']:.3f})"
             print(f"{run[-40:]:<40} {name:<8} {r['field_psnr']:9.2f} {r['preview_psnr']:11.2f} {r['gap_db']:7.2f} "
                   f"{'-' if depth is None else f'{depth:.3f}':>8} {r['bake_seconds']:7.0f} {alb_txt:>27}")
+        print(f"{'':<40} photo | field | {' | '.join(n for n in names if n in rows)}: {rows['comparison_png']}")
         if "field_albedo_vs_gt" in rows:
             f = rows["field_albedo_vs_gt"]
             print(f"{'':<40} the field's own composited albedo vs GT: {f['albedo_mae']:.3f} "
