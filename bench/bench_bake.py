@@ -10,7 +10,8 @@ one (``backdrop``, export-asset's default: the field's learned background where 
 (``bench_train._assets_depth_and_preview``: all test views, the field rendered once for both; the depth error where
 the scene has ground-truth depth; each GLB's albedo against the ground truth where the scene has it, beside the
 field's). Prints one row per run and bake, the gap to the field, and the mean and worst gap over the runs, and writes
-``OUT/runK/compare.png`` per run to look at: photo | field | each GLB's preview on three test views.
+``OUT/runK/compare.png`` per run to look at: photo | field | each GLB's preview on three test views. Also prints the
+field's PSNR with its per-point light residual switched off (the global SH only: what a GLB can carry).
 
 Usage: ``python bench/bench_bake.py --run RUN [--run RUN2 ...] [--threads 2] [--view-rays 300000]``. Without
 ``--run`` it first trains the bundled sample for 300 steps (``bench/out/bake/sample_run``, a few minutes).
@@ -78,7 +79,31 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
     for name, extra in baked.items():
         rows[name].update(extra, gap_db=rows[name]["field_psnr"] - rows[name]["preview_psnr"])
     rows["comparison_png"] = str(write_comparison(run, {name: out / name for name in baked}, out / "compare.png"))
+    rows["field_without_residual_psnr"] = field_psnr_without_residual(run)
     return rows
+
+
+def field_psnr_without_residual(run_dir: Path) -> float | None:
+    """Mean test PSNR of the field rendered with its per-point light residual Δl(x) switched off (global SH only):
+    the part of the field's colour a GLB lit by that SH can carry. None when the field has no residual head."""
+    import numpy as np
+    import torch
+
+    from toolkit.io import linear_to_srgb
+    from toolkit.metrics import psnr
+    from toolkit.train import load_run
+
+    run = load_run(run_dir)
+    if getattr(run.field, "light_head", None) is None:
+        return None
+    run.field.light_head = None
+    sc = run.load_split("test")
+    scores = []
+    for i in range(len(sc)):
+        with torch.no_grad():
+            o = run.render(sc.cameras, i)
+        scores.append(float(psnr(linear_to_srgb(o.rgb.clamp(0, 1)).permute(2, 0, 1), sc.load_image(i))))
+    return float(np.mean(scores))
 
 
 def write_comparison(run_dir: Path, asset_dirs: dict, out_png: Path, n: int = 3) -> Path:
@@ -138,6 +163,9 @@ def main(argv=None) -> int:
             print(f"{run[-40:]:<40} {name:<8} {r['field_psnr']:9.2f} {r['preview_psnr']:11.2f} {r['gap_db']:7.2f} "
                   f"{'-' if depth is None else f'{depth:.3f}':>8} {r['bake_seconds']:7.0f} {alb_txt:>27}")
         print(f"{'':<40} photo | field | {' | '.join(n for n in names if n in rows)}: {rows['comparison_png']}")
+        if rows.get("field_without_residual_psnr") is not None:
+            print(f"{'':<40} the field without its per-point light residual (global SH only, what a GLB can carry): "
+                  f"{rows['field_without_residual_psnr']:.2f} dB")
         if "field_albedo_vs_gt" in rows:
             f = rows["field_albedo_vs_gt"]
             print(f"{'':<40} the field's own composited albedo vs GT: {f['albedo_mae']:.3f} "
