@@ -49,9 +49,11 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
     from bench_train import _assets_depth_and_preview
     from export.gltf import export_gltf
     from toolkit.asset import Asset, AssetConfig, asset_field, bake_mesh, build_backdrop, build_mesh, view_maps
+    from toolkit.train import load_run
 
     torch.set_num_threads(threads)
-    field = asset_field(run)
+    loaded = load_run(run)  # once: the mesh, the bake, the comparison image and the no-residual score
+    field = asset_field(loaded)
     cfg = AssetConfig(view_rays=view_rays, depth_min_opacity=min_opacity, min_component=min_component)
     t0 = time.perf_counter()
     mesh, stats = build_mesh(field, cfg)
@@ -78,47 +80,48 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
     rows = _assets_depth_and_preview(run, {name: out / name for name in baked}, threads, albedo_vs_gt=True)
     for name, extra in baked.items():
         rows[name].update(extra, gap_db=rows[name]["field_psnr"] - rows[name]["preview_psnr"])
-    rows["comparison_png"] = str(write_comparison(run, {name: out / name for name in baked}, out / "compare.png"))
-    rows["field_without_residual_psnr"] = field_psnr_without_residual(run)
+    rows["comparison_png"] = str(write_comparison(loaded, {name: out / name for name in baked}, out / "compare.png"))
+    rows["field_without_residual_psnr"] = field_psnr_without_residual(loaded)
     return rows
 
 
-def field_psnr_without_residual(run_dir: Path) -> float | None:
-    """Mean test PSNR of the field rendered with its per-point light residual Δl(x) switched off (global SH only):
-    the part of the field's colour a GLB lit by that SH can carry. None when the field has no residual head."""
+def field_psnr_without_residual(run) -> float | None:
+    """Mean test PSNR of a loaded run's field rendered with its per-point light residual Δl(x) switched off (global
+    SH only): the part of the field's colour a GLB lit by that SH can carry. None when the field has no residual
+    head. The run is left as it was."""
     import numpy as np
     import torch
 
     from toolkit.io import linear_to_srgb
     from toolkit.metrics import psnr
-    from toolkit.train import load_run
 
-    run = load_run(run_dir)
-    if getattr(run.field, "light_head", None) is None:
+    head = getattr(run.field, "light_head", None)
+    if head is None:
         return None
-    run.field.light_head = None
     sc = run.load_split("test")
     scores = []
-    for i in range(len(sc)):
-        with torch.no_grad():
-            o = run.render(sc.cameras, i)
-        scores.append(float(psnr(linear_to_srgb(o.rgb.clamp(0, 1)).permute(2, 0, 1), sc.load_image(i))))
+    run.field.light_head = None
+    try:
+        for i in range(len(sc)):
+            with torch.no_grad():
+                o = run.render(sc.cameras, i)
+            scores.append(float(psnr(linear_to_srgb(o.rgb.clamp(0, 1)).permute(2, 0, 1), sc.load_image(i))))
+    finally:
+        run.field.light_head = head
     return float(np.mean(scores))
 
 
-def write_comparison(run_dir: Path, asset_dirs: dict, out_png: Path, n: int = 3) -> Path:
-    """A PNG grid to look at: one row per test view (``n`` evenly spread), columns photo | the field's render | each
-    GLB's moderngl preview (in ``asset_dirs`` order)."""
+def write_comparison(run, asset_dirs: dict, out_png: Path, n: int = 3) -> Path:
+    """A PNG grid to look at: one row per test view (``n`` evenly spread) of a loaded run, columns photo | the field's
+    render | each GLB's moderngl preview (in ``asset_dirs`` order)."""
     import numpy as np
     import torch
 
     from toolkit.io import linear_to_srgb, write_png
     from toolkit.pinhole import PinholeCamera
-    from toolkit.train import load_run
     from toolkit.visualise import tile
     from viewers.preview import OffscreenPreview
 
-    run = load_run(run_dir)
     sc = run.load_split("test")
     extent = float(np.linalg.norm((run.train_scene.aabb[1] - run.train_scene.aabb[0]).numpy()))
     idx = np.linspace(0, len(sc) - 1, min(n, len(sc))).round().astype(int)

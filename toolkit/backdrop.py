@@ -32,7 +32,7 @@ import torch
 
 from ._checks import SceneError, ShapeError
 from .cameras import generate_rays
-from .sh import lookup_latlong
+from .sh import latlong_angles, lookup_latlong
 
 __all__ = ["Backdrop", "background_visibility", "backdrop_from_views"]
 
@@ -106,8 +106,7 @@ class Backdrop:
 
 def _texel_of(directions: torch.Tensor, h: int, w: int) -> torch.Tensor:
     """int [R] the lat-long texel (row-major) a unit direction falls in."""
-    theta = torch.acos(directions[:, 2].clamp(-1.0, 1.0))
-    phi = torch.atan2(directions[:, 0], directions[:, 1]) % (2 * math.pi)
+    theta, phi = latlong_angles(directions)
     r = (theta / math.pi * h).long().clamp(0, h - 1)
     c = (phi / (2 * math.pi) * w).long().clamp(0, w - 1)
     return r * w + c

@@ -73,6 +73,7 @@ __all__ = [
     "latlong_directions",
     "latlong_solid_angles",
     "lookup_latlong",
+    "latlong_angles",
     "angular_directions",
     "angular_solid_angles",
     "fit_sh_probe",
@@ -315,6 +316,14 @@ def latlong_solid_angles(H: int, W: int, device: torch.device | str | None = Non
     return band[:, None].expand(H, W).to(device=device, dtype=dtype).contiguous()
 
 
+def latlong_angles(directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(θ, φ) of unit directions [..., 3] in the SPEC lat-long convention: θ = acos(z) from +z in [0, π], φ =
+    atan2(x, y) in [0, 2π) — row ``θ/π·H`` and column ``φ/(2π)·W`` of a map (:func:`lookup_latlong`)."""
+    theta = torch.acos(torch.clamp(directions[..., 2], -1.0, 1.0))
+    phi = torch.remainder(torch.atan2(directions[..., 0], directions[..., 1]), 2.0 * math.pi)
+    return theta, phi
+
+
 def lookup_latlong(envmap: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
     """Bilinear lookup of a SPEC lat-long map in given directions (texel centres at ``θ = π(row+½)/H``,
     ``φ = 2π(col+½)/W``; rows clamp at the poles, columns wrap).
@@ -329,9 +338,7 @@ def lookup_latlong(envmap: torch.Tensor, directions: torch.Tensor) -> torch.Tens
     dims = check_shape(envmap, "H W C", name="envmap")
     check_shape(directions, "... 3", name="directions")
     H, W = dims["H"], dims["W"]
-    d = directions.to(device=envmap.device, dtype=torch.float64)
-    theta = torch.acos(torch.clamp(d[..., 2], -1.0, 1.0))
-    phi = torch.remainder(torch.atan2(d[..., 0], d[..., 1]), 2.0 * math.pi)
+    theta, phi = latlong_angles(directions.to(device=envmap.device, dtype=torch.float64))
     rf = torch.clamp(theta * (H / math.pi) - 0.5, 0.0, H - 1.0)
     cf = phi * (W / (2.0 * math.pi)) - 0.5
     r0 = torch.clamp(torch.floor(rf), 0, H - 1).long()

@@ -19,11 +19,11 @@ from typing import Literal
 import numpy as np
 import torch
 
-from toolkit._checks import DarsError
+from toolkit._checks import ConfigError, DarsError
 from toolkit.sh import (GLTF_SH_SIGNS, SH_C0, SH_IRRADIANCE_BANDS, WORLD_TO_Y_UP, check_sh_coeffs, read_sh_json,
                         rotate_sh)
 
-__all__ = ["DEFAULT_SH", "asset_sh", "sh_from_gltf_ibl", "sh_from_probe", "resolve_sh"]
+__all__ = ["DEFAULT_SH", "asset_sh", "sh_from_gltf_ibl", "sh_from_probe", "resolve_sh", "draws_backdrop"]
 
 _BAND_OF_K = (0, 1, 1, 1, 2, 2, 2, 2, 2)
 
@@ -97,3 +97,22 @@ def resolve_sh(asset, sh_json: str | Path | None = None, probe: str | Path | Non
     if sh is not None:
         return sh, "asset"
     return DEFAULT_SH.copy(), "default (uniform white, the asset has no SH)"
+
+
+def draws_backdrop(background: str, asset, sh: np.ndarray) -> bool:
+    """Whether a viewer lit by ``sh`` draws the GLB's backdrop (:mod:`toolkit.backdrop`) for the ``background``
+    choice (``dars view``'s and the WebXR page's rule): ``"backdrop"`` always (an error on a GLB without one),
+    ``"auto"`` when the GLB has one and ``sh`` is the GLB's own light (a relit view shows the new light's radiance
+    instead), any other choice never.
+
+    Raises:
+        ConfigError: ``"backdrop"`` on a GLB without one.
+    """
+    if background == "backdrop":
+        if asset.backdrop is None:
+            raise ConfigError("background='backdrop': this GLB carries no backdrop (exported before 2026-11-29 or "
+                              "with --no-backdrop); use 'sh' or re-export it with `dars export-asset RUN`")
+        return True
+    if background != "auto" or asset.backdrop is None or asset.sh is None:
+        return False
+    return bool(np.allclose(np.asarray(sh, np.float64), asset.sh, rtol=1e-5, atol=1e-6))

@@ -320,7 +320,6 @@ class PreviewRenderer:
         self.backdrop = self._backdrop_texture(asset.backdrop)
         if sh is None:
             sh, _ = resolve_sh(asset)
-        self._own_sh = None if asset.sh is None else np.asarray(asset.sh, np.float64)
         self.set_sh(sh)
 
     # ------------------------------------------------------------------------------------------------ resources
@@ -367,15 +366,9 @@ class PreviewRenderer:
         Raises:
             ConfigError: ``background="backdrop"`` on a GLB without one.
         """
-        if cfg.mode != "lit" or cfg.background in ("sh", "colour"):
-            return False
-        if cfg.background == "backdrop":
-            if self.backdrop is None:
-                raise ConfigError("background='backdrop': this GLB carries no backdrop (exported before 2026-11-29 or "
-                                  "with --no-backdrop); use 'sh' or re-export it with `dars export-asset RUN`")
-            return True
-        return self.backdrop is not None and self._own_sh is not None \
-            and bool(np.allclose(np.asarray(self.sh, np.float64), self._own_sh, rtol=1e-5, atol=1e-6))
+        from .lighting import draws_backdrop
+
+        return cfg.mode == "lit" and draws_backdrop(cfg.background, self.asset, self.sh)
 
     def _pipeline(self, shading: ShadingConfig) -> tuple:
         """(mesh program, mesh VAO, background program, background VAO) for a shading config (compiled once)."""

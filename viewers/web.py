@@ -225,7 +225,7 @@ def export_web(glb: str | Path, out_dir: str | Path, sh: np.ndarray | None = Non
 
     from toolkit.sh import check_sh_coeffs
 
-    from .lighting import resolve_sh
+    from .lighting import draws_backdrop, resolve_sh
     from .shading_glsl import glsl_shading_source
 
     if not np.isfinite(cfg.exposure):
@@ -245,12 +245,8 @@ def export_web(glb: str | Path, out_dir: str | Path, sh: np.ndarray | None = Non
     else:
         sh, default_source = check_sh_coeffs(sh, "export_web sh"), "given"
     background = cfg.background
-    own_light = asset.sh is not None and np.allclose(np.asarray(sh, np.float64), asset.sh, rtol=1e-5, atol=1e-6)
-    if background == "backdrop" and asset.backdrop is None:
-        raise ConfigError(f"background='backdrop': {glb} carries no backdrop (exported before 2026-11-29 or with "
-                          "--no-backdrop); use 'sh' or re-export it with `dars export-asset RUN`")
-    if background == "auto":
-        background = "backdrop" if asset.backdrop is not None and own_light else "sh"
+    if isinstance(background, str):
+        background = "backdrop" if draws_backdrop(background, asset, sh) else "sh"
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     vendor = vendor_threejs(three, out / "vendor" / "three")
