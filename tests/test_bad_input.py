@@ -517,6 +517,8 @@ CASES += [
     Case("resume-other-seed", _RESUME("--seed", "7"), ("--seed 7", "the run's: 0"), _copy_run),
     Case("resume-ablation-switch", _RESUME(_OTHER_SAMPLER), (_OTHER_SAMPLER,), _copy_run),  # not the run's sampler
     Case("resume-other-priors", _RESUME("--priors", "."), ("--priors",), _copy_run),
+    Case("resume-other-light-residual", _RESUME("--light-residual", "off"), ("--light-residual off", "the run's: "),
+         _copy_run),
     Case("resume-and-force", _RESUME("--force"), ("--resume", "--force"), _copy_run),
     Case("resume-no-checkpoint", lambda c: ["train", "--resume", "--out", c.t / "r", "--steps", 4],
          ("no checkpoint", "--force"), _both(_copy_run, lambda c: (c.t / "r" / "checkpoint.pt").unlink())),

@@ -671,3 +671,35 @@ def test_light_head_folds_the_global_light_into_its_bias():
         assert torch.allclose(a, b, atol=1e-4, rtol=1e-4)
     out = fld.heads(h.detach(), l_env=l_env)
     assert out.light_residual.shape == (64, 9, 3) and torch.isfinite(out.light).all()
+
+
+def test_grey_light_residual_shades_but_does_not_tint():
+    # light_residual_colour='grey': one factor per SH coefficient, shared by the channels as a fraction of each
+    # channel's ambient, so Δl_c / ½|L00_c| is the same for r, g and b; 'rgb' keeps a factor per channel
+    from toolkit.field import DarsField, FieldConfig
+    from toolkit.train.config import TrainConfig
+
+    torch.manual_seed(0)
+    box = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    l_env = torch.randn(9, 3)
+    h = torch.randn(32, FieldConfig().feature_dim)
+    ratios = {}
+    for colour in ("rgb", "grey"):
+        torch.manual_seed(1)
+        fld = DarsField(FieldConfig(light_residual_colour=colour), box)
+        for p in fld.light_head.parameters():
+            torch.nn.init.normal_(p, std=0.3)
+        res = fld.heads(h, l_env=l_env).light_residual
+        assert res.shape == (32, 9, 3)
+        ratios[colour] = res / (0.5 * l_env[:1].abs() + 1e-3)          # tanh(g_kc)
+        z = fld._light_head(h, l_env).reshape(-1, 9, 3)
+        want = torch.tanh(z.mean(-1, keepdim=True) if colour == "grey" else z).expand(-1, -1, 3)
+        assert torch.allclose(ratios[colour], want, atol=1e-4)  # grey: the tanh of the channels' mean output
+    assert torch.allclose(ratios["grey"], ratios["grey"][..., :1].expand(-1, -1, 3), atol=1e-5)
+    assert (ratios["rgb"] - ratios["rgb"][..., :1]).abs().max() > 0.05
+    with pytest.raises(ConfigError, match="light_residual_colour"):
+        FieldConfig(light_residual_colour="red")
+    # runs saved before the option had the coloured residual
+    d = TrainConfig().to_dict()
+    del d["field"]["light_residual_colour"]
+    assert TrainConfig.from_dict(d).field.light_residual_colour == "rgb"

@@ -70,6 +70,11 @@ class FieldConfig:
     n_classes: int = N_CLASSES
     light_residual: bool = True
     """Predict the per-point lighting residual Δl(x)."""
+    light_residual_colour: str = "rgb"
+    """The residual's colour. ``rgb``: one Δl per SH coefficient and colour channel. ``grey``: one per coefficient,
+    shared by the channels as a fraction of each channel's ambient (Δl_c = tanh(g)·½|L00_c|), so the residual can
+    shade and shadow but not tint: colour the photos show goes to the albedo, which a GLB carries, not to the local
+    light, which it does not."""
     shell: float = 0.0
     """Room prior: thickness, as a fraction of the box diagonal, of an opaque layer the density starts with on the
     box faces in ``shell_faces`` (0: off, a transparent start everywhere). For captures taken inside an enclosed
@@ -91,6 +96,8 @@ class FieldConfig:
                 raise ConfigError(f"field {name}={getattr(self, name)} must be >= 1")
         if not 0.0 <= self.shell < 0.5:
             raise ConfigError(f"field shell={self.shell} must be in [0, 0.5) (a fraction of the box diagonal)")
+        if self.light_residual_colour not in ("rgb", "grey"):
+            raise ConfigError(f"field light_residual_colour={self.light_residual_colour!r}: choose 'rgb' or 'grey'")
         if len(self.shell_faces) != 6:
             raise ConfigError(f"field shell_faces needs 6 flags (x min, y min, z min, x max, y max, z max), "
                               f"got {len(self.shell_faces)}")
@@ -255,7 +262,10 @@ class DarsField(nn.Module):
                     # bounded: |Δl_k| ≤ ½·|L00| per channel (a local correction of the room's light, not a second
                     # light source; unbounded, it can blow up to 10x the ambient level on white-background scenes)
                     bound = 0.5 * l_env.reshape(1, 9, 3)[:, :1, :].abs().to(h) + 1e-3
-                    res = torch.tanh(self._light_head(h, l_env).reshape(-1, 9, 3)) * bound
+                    z = self._light_head(h, l_env).reshape(-1, 9, 3)
+                    if self.cfg.light_residual_colour == "grey":
+                        z = z.mean(-1, keepdim=True)  # one factor per coefficient, for every channel
+                    res = torch.tanh(z) * bound
                     out.light_residual = res
                     out.light = l_env.reshape(1, 9, 3).to(h) + res
                 else:

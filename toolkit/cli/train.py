@@ -57,6 +57,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="how the light prior starts l_env: all 9 SH coefficients (full) or only band 0, its level and "
                         "colour (ambient; the directions are then left to the eq. 22 light stage)")
     q.add_argument("--no-mat-loss", action="store_true", help="ablation: no L_mat")
+    q.add_argument("--light-residual", choices=["rgb", "grey", "off"], default=None,
+                   help="the field's per-point light residual Δl(x): one per colour channel (rgb), one shared by the "
+                        "channels, which shades but cannot tint (grey), or none (off); default: the preset's (README, "
+                        "\"A colour-neutral light residual\")")
     q.add_argument("--sparse-depth", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the sparse-depth loss: rays through feature points triangulated from the photos "
                         "and poses end at their depth (default: 0.1 for a room, 0 for an object; 0 = off)")
@@ -155,8 +159,16 @@ _RESUME_OPTIONS = (
        lambda v: None if v is None else float(v))
       for flag, attr, key in _LOSS_OPTIONS),
     ("--labels", "labels", lambda m: m["config"].get("labels", "predicted"), lambda v: None if v == "predicted" else v),
+    ("--light-residual", "light_residual", lambda m: _residual_mode(m["config"].get("field", {})), lambda v: v),
 )
 """Options that define a run: with ``--resume`` they must match the saved run (only its length may grow)."""
+
+
+def _residual_mode(field: dict) -> str:
+    """``--light-residual`` of a saved run's field config (runs saved before the option: rgb)."""
+    if not field.get("light_residual", True):
+        return "off"
+    return field.get("light_residual_colour", "rgb")
 
 
 def _check_resume(args: argparse.Namespace) -> None:
@@ -240,11 +252,15 @@ def cmd_train(args: argparse.Namespace) -> int:
     if snapshots:
         overrides["snapshot_minutes"] = snapshots
     cfg = make_config(args.preset or "fast", **overrides)
+    from dataclasses import replace
+
     asked = {key: float(getattr(args, attr)) for _, attr, key in _LOSS_OPTIONS if getattr(args, attr) is not None}
     if asked:
-        from dataclasses import replace
-
         cfg = replace(cfg, losses=replace(cfg.losses, **asked))
+    if args.light_residual == "off":
+        cfg = replace(cfg, field=replace(cfg.field, light_residual=False))
+    elif args.light_residual is not None:
+        cfg = replace(cfg, field=replace(cfg.field, light_residual=True, light_residual_colour=args.light_residual))
     priors = args.priors
     try:
         if not args.resume and priors is None and not args.no_auto_priors and cfg.shading != "radiance":

@@ -165,6 +165,7 @@ class TrainConfig:
         if "shell_faces" in fd:
             fd["shell_faces"] = tuple(bool(f) for f in fd["shell_faces"])
         fd.setdefault("contraction", False)  # runs made before unbounded scenes were bounded
+        fd.setdefault("light_residual_colour", "rgb")  # runs made before the grey residual had a coloured one
         if d.get("scene_box") is not None:
             d["scene_box"] = tuple(tuple(float(v) for v in row) for row in d["scene_box"])
         samplers = {k: dict(d.pop(k)) for k in ("sampler", "render_sampler")}
