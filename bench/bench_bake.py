@@ -4,9 +4,10 @@ backdrop (issue 16's "moderngl preview of the GLB within 4 dB of the field's own
 For each run: the mesh is built once with ``dars export-asset``'s defaults (:func:`toolkit.asset.build_mesh`), then
 baked twice — ``--bake-from points`` (the field's materials at each texel's surface point) and ``--bake-from views``
 (each texel's albedo from the field's renders at the training views that see it, :mod:`toolkit.viewbake`). The views
-bake is written twice: without a backdrop (``views``: the preview draws the SH radiance where the mesh is not) and with
-one (``backdrop``, export-asset's default: the field's learned background where the photos saw it,
-:mod:`toolkit.backdrop`). Each GLB's moderngl preview is scored against the test photos beside the field's own render
+bake is written three times: without a backdrop (``views``: the preview draws the SH radiance where the mesh is not),
+with the field's learned background map alone where the photos saw it (``background``), and with export-asset's
+default backdrop (``backdrop``: the field's rendered colour wherever the mesh leaves a training pixel uncovered, the
+background map elsewhere; :mod:`toolkit.backdrop`). Each GLB's moderngl preview is scored against the test photos beside the field's own render
 (``bench_train._assets_depth_and_preview``: all test views, the field rendered once for both; the depth error where
 the scene has ground-truth depth; each GLB's albedo against the ground truth where the scene has it, beside the
 field's). Prints one row per run and bake, the gap to the field, and the mean and worst gap over the runs, and writes
@@ -70,13 +71,16 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
         export_gltf(uvmesh, textures, out / name / "scene.glb", sh=field.sh)
         baked[name] = {"bake_seconds": time.perf_counter() - t0 + (render_s if views is not None else 0.0),
                        "views": bake.get("views")}
-    backdrop = build_backdrop(field, maps, cfg)
-    if backdrop is not None:
-        (out / "backdrop").mkdir(parents=True, exist_ok=True)
+    # background: the field's learned background map alone; backdrop (the default): its colour where the mesh is not
+    for name, backdrop in (("background", build_backdrop(field, maps, cfg)),
+                           ("backdrop", build_backdrop(field, maps, cfg, uvmesh))):
+        if backdrop is None:
+            continue
+        (out / name).mkdir(parents=True, exist_ok=True)
         extras = Asset(mesh, uvmesh, textures, field.sh, stats, backdrop).gltf_extras()
-        export_gltf(uvmesh, textures, out / "backdrop" / "scene.glb", sh=field.sh, extras=extras)
-        baked["backdrop"] = {**baked["views"], "backdrop_texels_seen": float((backdrop.visibility > 0).mean()),
-                             "backdrop_mean_visibility": float(backdrop.visibility.mean())}
+        export_gltf(uvmesh, textures, out / name / "scene.glb", sh=field.sh, extras=extras)
+        baked[name] = {**baked["views"], "backdrop_texels_seen": float((backdrop.visibility > 0).mean()),
+                       "backdrop_mean_visibility": float(backdrop.visibility.mean())}
     rows = _assets_depth_and_preview(run, {name: out / name for name in baked}, threads, albedo_vs_gt=True)
     for name, extra in baked.items():
         rows[name].update(extra, gap_db=rows[name]["field_psnr"] - rows[name]["preview_psnr"])
@@ -155,15 +159,15 @@ def main(argv=None) -> int:
     for k, run in enumerate(runs):
         results[str(run)] = bake_both(run, out / f"run{k}", args.threads, args.view_rays,
                                            args.depth_min_opacity, args.min_component)
-    print(f"{'run':<40} {'GLB':<8} {'field dB':>9} {'preview dB':>11} {'gap dB':>7} {'depth m':>8} {'bake s':>7} "
+    print(f"{'run':<40} {'GLB':<10} {'field dB':>9} {'preview dB':>11} {'gap dB':>7} {'depth m':>8} {'bake s':>7} "
           f"{'albedo MAE (aligned) vs GT':>27}")
-    names = ("points", "views", "backdrop")
+    names = ("points", "views", "background", "backdrop")
     for run, rows in results.items():
         for name in (n for n in names if n in rows):
             r = rows[name]
             depth, alb = r["depth_error_median_m"], r.get("albedo_vs_gt")
             alb_txt = "-" if alb is None else f"{alb['albedo_mae']:.3f} ({alb['albedo_mae_aligned']:.3f})"
-            print(f"{run[-40:]:<40} {name:<8} {r['field_psnr']:9.2f} {r['preview_psnr']:11.2f} {r['gap_db']:7.2f} "
+            print(f"{run[-40:]:<40} {name:<10} {r['field_psnr']:9.2f} {r['preview_psnr']:11.2f} {r['gap_db']:7.2f} "
                   f"{'-' if depth is None else f'{depth:.3f}':>8} {r['bake_seconds']:7.0f} {alb_txt:>27}")
         print(f"{'':<40} photo | field | {' | '.join(n for n in names if n in rows)}: {rows['comparison_png']}")
         if rows.get("field_without_residual_psnr") is not None:
@@ -178,7 +182,7 @@ def main(argv=None) -> int:
         if gaps:
             print(f"{name}: gap to the field mean {sum(gaps) / len(gaps):.2f} dB, worst {max(gaps):.2f} dB "
                   f"over {len(gaps)} run(s) (issue 16's bound: 4 dB)")
-    for a, b in (("views", "points"), ("backdrop", "views")):
+    for a, b in (("views", "points"), ("background", "views"), ("backdrop", "views"), ("backdrop", "background")):
         gain = [rows[a]["preview_psnr"] - rows[b]["preview_psnr"] for rows in results.values() if a in rows]
         if gain:
             print(f"{a} vs {b}: preview {sum(gain) / len(gain):+.2f} dB mean, {min(gain):+.2f} dB worst")

@@ -157,3 +157,85 @@ def test_preview_draws_the_backdrop_behind_the_mesh(gl, tmp_path):
         assert np.array_equal(view.render(cam).image, view.render(cam, PreviewConfig(background="sh")).image)
     with pytest.raises(ConfigError, match="background='sky'"):
         PreviewConfig(background="sky")
+
+
+def _quad(z: float, flip: bool = False, r: float = 0.2):
+    """Two triangles covering x, y in [-r, r] at height z, front side facing down (-z) unless ``flip``."""
+    v = np.array([[-r, -r, z], [r, -r, z], [r, r, z], [-r, r, z]], np.float32)
+    f = np.array([[0, 2, 1], [0, 3, 2]], np.int64)  # clockwise seen from above: the front faces -z
+    return v, (f[:, ::-1] if flip else f)
+
+
+def test_mesh_coverage_is_what_a_one_sided_viewer_draws():
+    from toolkit.backdrop import mesh_coverage
+
+    cams = _views([0.0], [UP]).cameras  # at the origin, looking up (+z); the quad fills the middle of the view
+    v, f = _quad(2.0)
+    cov = mesh_coverage(v, f, cams)
+    assert cov.shape == (1, SIZE, SIZE) and cov.dtype == torch.bool
+    assert bool(cov[0, SIZE // 2, SIZE // 2]) and bool(cov[0, 0, 0]) is False  # ±0.2 m at 2 m: ±4 px of 16
+    assert 0.2 < float(cov.float().mean()) < 0.95
+    vb, fb = _quad(2.0, flip=True)
+    assert not bool(mesh_coverage(vb, fb, cams).any())  # seen from behind: culled, nothing drawn
+    # a back face in front of a front face: the ray goes on through it and the far quad is drawn
+    v2, f2 = _quad(3.0)
+    both_v, both_f = np.concatenate([vb, v2]), np.concatenate([fb, f2 + 4])
+    torch.testing.assert_close(mesh_coverage(both_v, both_f, cams), mesh_coverage(v2, f2, cams))
+    assert not bool(mesh_coverage(np.zeros((0, 3)), np.zeros((0, 3), np.int64), cams).any())
+
+
+def test_backdrop_takes_the_field_colour_where_the_mesh_is_not():
+    bg = Background("env")
+    with torch.no_grad():
+        bg.raw.copy_(torch.randn_like(bg.raw))
+    views = _views([0.0, 1.0], [UP, ALONG_Y])
+    colour = torch.tensor([0.2, 0.4, 0.6])
+    views.values["rgb"] = colour.expand(2, SIZE, SIZE, 3).clone()
+    covered = torch.zeros(2, SIZE, SIZE, dtype=torch.bool)
+    covered[0] = True                                       # the zenith view is all mesh: nothing of it in the map
+    bd = backdrop_from_views(bg.radiance_map(), views, covered)
+    assert bd.shape == (32, 64)
+    np.testing.assert_allclose(bd.radiance[15:17][:, [63, 0]], np.broadcast_to(colour.numpy(), (2, 2, 3)), atol=1e-6)
+    assert bd.visibility[15:17][:, [63, 0]].min() == 1.0    # the horizon at phi = 0: the colour, at visibility 1
+    # elsewhere the learned background and its visibility, resampled: the zenith was seen through nothing
+    base = backdrop_from_views(bg.radiance_map(), views)
+    d = torch.tensor([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    rad, vis = bd.sample(d[1:])
+    rad0, vis0 = base.sample(d[1:])
+    torch.testing.assert_close(rad, rad0, atol=0.05, rtol=0.05)
+    assert float(vis[0]) == 0.0
+    assert bd.visibility[0].min() == 1.0 and np.allclose(bd.radiance[0], base.sample(
+        __import__("toolkit.sh", fromlist=["latlong_directions"]).latlong_directions(32, 64)[0])[0].numpy(), atol=1e-5)
+    with pytest.raises(ShapeError, match="covered has shape"):
+        backdrop_from_views(bg.radiance_map(), views, covered[:1])
+    # views without the field's colour (an older renderer): the background map alone
+    del views.values["rgb"]
+    assert backdrop_from_views(bg.radiance_map(), views, covered).shape == (16, 32)
+
+
+def test_build_asset_backdrop_holds_the_field_colour_around_the_mesh():
+    # views that carry the field's colour: the backdrop takes it where the sphere's mesh leaves a pixel uncovered
+    from toolkit.backdrop import _texel_of
+
+    calls = []
+    field = _sphere_field(calls)
+    plain = field.views
+    colour = torch.tensor([0.2, 0.4, 0.6])
+
+    def views(cams):
+        m = plain(cams)
+        m.values["rgb"] = colour.expand(*m.opacity.shape, 3).clone()
+        return m
+
+    asset = build_asset(field._replace(views=views), AssetConfig(method="mc", resolution=32, faces=600, texture=64,
+                                                                 level=100.0))
+    bd = asset.backdrop
+    assert bd.shape == (32, 64) and asset.stats["backdrop"]["height"] == 32
+    rad = bd.radiance.reshape(-1, 3)
+    is_colour = np.abs(rad - colour.numpy()).max(1) < 1e-6
+    ray = generate_rays(field.cameras, [0])
+    d = torch.nn.functional.normalize(ray.directions, dim=-1)
+    corner, centre = _texel_of(d[:1], 32, 64), _texel_of(d[6 * 16 + 8:6 * 16 + 9], 32, 64)
+    assert is_colour[int(corner)] and bd.visibility.reshape(-1)[int(corner)] == 1.0  # past the sphere: the colour
+    assert not is_colour[int(centre)]  # at the sphere, seen by no other camera: the background map
+    assert 0.02 < is_colour.mean() < 0.5

@@ -536,8 +536,8 @@ def test_baked_sample_matches_the_field_render(tmp_path_factory, gl):
     bake = json.loads((asset_dir / "mesh_stats.json").read_text())["bake"]
     assert bake["bake_from"] == "views" and bake["views"]["count"] == 80, bake  # the default: the field's renders
     assert bake["views"]["texels_seen"] > 0.5, bake
-    backdrop = load_glb(asset_dir / "scene.glb").backdrop  # the field's background, for what the mesh leaves out
-    assert backdrop is not None and backdrop.shape == (16, 32) and 0.0 < backdrop.visibility.max() <= 1.0
+    backdrop = load_glb(asset_dir / "scene.glb").backdrop  # the field's colour, for what the mesh leaves out
+    assert backdrop is not None and backdrop.shape == (32, 64) and 0.0 < backdrop.visibility.max() <= 1.0
     run = load_run(run_dir)
     scene = load_scene(run.scene_path, "test")
     extent = float(np.linalg.norm((scene.aabb[1] - scene.aabb[0]).numpy()))

@@ -97,9 +97,10 @@ class AssetConfig:
     view_tolerance: float = 0.1
     """``views``: a view sees a texel when the texel's depth is within this fraction of the rendered depth."""
     backdrop: bool = True
-    """Store the field's learned background in the GLB (:mod:`toolkit.backdrop`: what the viewers draw where the mesh
-    is not — a gallery's sky, the white behind an object), weighted per direction by how much of it the training
-    renders saw. Needs the renders of ``bake_from="views"`` (rendered for it alone with ``points``)."""
+    """Store a backdrop in the GLB (:mod:`toolkit.backdrop`: what the viewers draw where the mesh is not — a
+    gallery's sky, the white behind an object, the holes in the mesh): the field's rendered colour in the directions
+    where the mesh leaves training pixels uncovered, elsewhere its learned background weighted by how much of it the
+    training renders saw. Needs the renders of ``bake_from="views"`` (rendered for it alone with ``points``)."""
     device: str = "cpu"
     """Device the field is queried on."""
 
@@ -301,14 +302,19 @@ def view_maps(field: FieldCallables, cfg: AssetConfig = AssetConfig(), log=None)
     return views(cams)
 
 
-def build_backdrop(field: FieldCallables, views, cfg: AssetConfig = AssetConfig()):
-    """The GLB's :class:`toolkit.backdrop.Backdrop` (the field's learned background and its visibility in ``views``,
-    :func:`view_maps`), or None: ``cfg.backdrop`` off, or a field without a background or without renders."""
+def build_backdrop(field: FieldCallables, views, cfg: AssetConfig = AssetConfig(), mesh=None):
+    """The GLB's :class:`toolkit.backdrop.Backdrop`, or None: ``cfg.backdrop`` off, or a field without a background
+    or without renders. From the field's learned background and its visibility in ``views`` (:func:`view_maps`);
+    given the GLB's ``mesh`` (anything with ``vertices`` and ``faces``) and views holding the field's colour, the
+    field's colour wherever the mesh leaves a training pixel uncovered (:func:`toolkit.backdrop.backdrop_from_views`)."""
     if not _wants_backdrop(field, cfg) or views is None:
         return None
-    from .backdrop import backdrop_from_views
+    from .backdrop import backdrop_from_views, mesh_coverage
 
-    return backdrop_from_views(field.background, views)
+    covered = None
+    if mesh is not None and "rgb" in views.values:
+        covered = mesh_coverage(mesh.vertices, mesh.faces, views.cameras)
+    return backdrop_from_views(field.background, views, covered)
 
 
 def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=None,
@@ -368,7 +374,7 @@ def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = Asset
     uvmesh, textures, bake_stats = bake_mesh(mesh, field.material_fn, cfg, log=log,
                                              views=maps if cfg.bake_from == "views" else None)
     stats["bake"] = bake_stats
-    backdrop = build_backdrop(field, maps, cfg)
+    backdrop = build_backdrop(field, maps, cfg, uvmesh)
     if backdrop is not None:
         vis = backdrop.visibility
         stats["backdrop"] = {"height": backdrop.shape[0], "width": backdrop.shape[1],

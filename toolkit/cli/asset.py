@@ -78,8 +78,8 @@ def add_bake_options(q: argparse.ArgumentParser, backdrop: bool = True) -> None:
                         "rendered depth")
     if backdrop:
         q.add_argument("--no-backdrop", dest="backdrop", action="store_false",
-                       help="do not store the field's learned background in the GLB (the backdrop viewers draw where "
-                            "the mesh is not: a gallery's sky, the white behind an object)")
+                       help="store no backdrop in the GLB (what the viewers draw where the mesh is not — a gallery's "
+                            "sky, the white behind an object, holes in the mesh — taken from the field's renders)")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

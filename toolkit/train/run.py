@@ -268,13 +268,14 @@ def run_field_callables(run: Run) -> FieldCallables:
                           run.background.radiance_map().detach().float().cpu().clone())
 
 
-VIEW_MAP_KEYS = ("albedo", "roughness", "metallic")
-"""The composited outputs :func:`render_view_maps` keeps (the material channels a GLB bakes)."""
+VIEW_MAP_KEYS = ("albedo", "roughness", "metallic", "rgb")
+"""The composited outputs :func:`render_view_maps` keeps: the material channels a GLB bakes, and the colour (linear
+RGB, the background composited) its backdrop takes where the mesh is not (:func:`toolkit.backdrop.backdrop_from_views`)."""
 
 
 def render_view_maps(run: Run, cameras: Cameras, progress: bool = True):
     """The run's own renders at ``cameras`` (one pixel grid), as :class:`toolkit.viewbake.ViewMaps`: composited
-    albedo (clamped to [0, 1]), roughness, metallic, depth and opacity, rendered with the run's settings (the DARS
+    albedo (clamped to [0, 1]), roughness, metallic, colour, depth and opacity, rendered with the run's settings (the DARS
     sampler's W maps included when the run has them)."""
     from tqdm import tqdm
 
