@@ -27,8 +27,8 @@ Conventions (fixed; ``tests/test_gltf.py`` checks each):
      viewer sampling these mips reproduces the trained model's specular term;
   2. the raw SPEC-convention coefficients (incident radiance, real SH order 2, [9, 3], *our +z-up world frame*,
      before the axis conversion) in the root ``extras.dars.sh`` — the lossless copy our own tools read back.
-* **Backdrop.** ``dars export-asset`` adds the field's learned background (what the viewers draw where the mesh is
-  not: a gallery's sky, the white behind an object) in the root ``extras.dars.backdrop``: a lat-long map in our
+* **Backdrop.** ``dars export-asset`` adds a backdrop (what the viewers draw where the mesh is not — a gallery's
+  sky, the white behind an object, holes in the mesh — from the field's renders) in the root ``extras.dars.backdrop``: a lat-long map in our
   +z-up world frame, linear radiance and a per-texel visibility (:class:`toolkit.backdrop.Backdrop`, passed in
   ``extras``); :func:`load_glb` reads it into :attr:`GltfAsset.backdrop`. Other glTF viewers ignore it.
 """
@@ -471,7 +471,7 @@ class GltfAsset:
         ibl: the ``EXT_lights_image_based`` light dict as stored, or None.
         ibl_images: decoded specular cube faces per mip (uint8 RGBD [s, s, 4]), or [].
         json: the whole glTF JSON.
-        backdrop: the field's learned background from ``extras.dars.backdrop`` (:class:`toolkit.backdrop.Backdrop`:
+        backdrop: the backdrop from ``extras.dars.backdrop`` (:class:`toolkit.backdrop.Backdrop`:
             what the viewers draw where the mesh is not), or None.
     """
 

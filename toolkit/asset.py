@@ -152,7 +152,7 @@ class Asset:
         sh: float [9, 3] the run's SH light (SPEC convention), or None.
         stats: ``mesh_stats.json``: the mesh half's statistics, with the bake's under ``bake`` (and the backdrop's
             under ``backdrop``).
-        backdrop: the field's learned background for the viewers (:mod:`toolkit.backdrop`), or None.
+        backdrop: what the viewers draw where the mesh is not (:mod:`toolkit.backdrop`), or None.
     """
 
     mesh: Mesh

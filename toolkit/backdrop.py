@@ -1,4 +1,4 @@
-"""Stage 13d — the backdrop: what a GLB's viewer draws where the mesh is not (the field's learned background).
+"""Stage 13d — the backdrop: what a GLB's viewer draws where the mesh is not (what the field drew there).
 
 The GLB holds the room's surfaces; the sky over a gallery without a ceiling, the view out of a window and the
 white behind an object photographed on a transparent background are not surfaces, and the mesh region leaves them
@@ -61,8 +61,9 @@ class Backdrop:
 
     Attributes:
         radiance: float32 [h, w, 3] linear radiance, lat-long (:data:`CONVENTION`).
-        visibility: float32 [h, w] in [0, 1]: how much of the training photos' light came from the background in
-            each texel's direction (0: never seen; the viewer draws the SH radiance there).
+        visibility: float32 [h, w] in [0, 1]: how much of the training photos' light came from beyond the mesh in
+            each texel's direction (1 where the field's colour was taken; 0: never seen, the viewer draws the SH
+            radiance there).
     """
 
     radiance: np.ndarray

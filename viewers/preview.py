@@ -13,8 +13,8 @@ The fragment shader calls ``dars_shade_pbr``, generated from :mod:`toolkit.shadi
   ``metallic`` = the value as grey; ``normals`` = world normal ``(n + 1)/2`` (as :func:`toolkit.visualise.colourise_normals`);
   ``semantics`` = :data:`toolkit.visualise.LABEL_COLOURS` per semantic primitive (unlabelled black). Background in
   ``lit`` mode: the GLB's backdrop where it has one and the light is its own (:mod:`toolkit.backdrop`: the field's
-  learned background, blended per direction with the SH radiance by how much of it the training photos saw —
-  ``visibility · backdrop + (1 − visibility) · SH``), else the SH environment's radiance along each view ray; a flat
+  colour where the mesh left training pixels uncovered, else its learned background, blended per direction with the
+  SH radiance by its visibility — ``visibility · backdrop + (1 − visibility) · SH``), else the SH environment's radiance along each view ray; a flat
   grey in the other modes. Alpha is 1 on the mesh, 0 elsewhere (the coverage mask of :class:`PreviewImage`).
 * No MSAA offscreen (one sample per pixel centre, like the field's renderer); the window asks for 4x MSAA.
 

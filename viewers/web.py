@@ -72,8 +72,8 @@ class WebConfig:
     exposure: float = 0.0
     """Exposure in stops (colour × 2^exposure before the sRGB transfer); ``?exposure=EV`` overrides it."""
     background: str | tuple[float, float, float] = "auto"
-    """Behind the model: ``"backdrop"``: the GLB's backdrop (the field's learned background where the photos saw it,
-    :mod:`toolkit.backdrop`; an error when the GLB has none); ``"sh"``: the SH environment; ``"auto"``: the backdrop
+    """Behind the model: ``"backdrop"``: the GLB's backdrop (the field's colour and learned background where the
+    photos saw past the mesh, :mod:`toolkit.backdrop`; an error when the GLB has none); ``"sh"``: the SH environment; ``"auto"``: the backdrop
     when the GLB has one and the page shows the GLB's own light, else ``"sh"`` (as ``dars view``); or an sRGB
     colour."""
     specular: bool = True

@@ -74,8 +74,8 @@ function useDarsShading(material) {
   material.needsUpdate = true;
 }
 
-// The backdrop (toolkit.backdrop): the field's learned background as a lat-long half-float texture, rgb linear
-// radiance and a the visibility, in the dars world frame (+z up); rows clamp, columns wrap, linear filtering.
+// The backdrop (toolkit.backdrop): what the field drew where the mesh is not, as a lat-long half-float texture, rgb
+// linear radiance and the visibility, in the dars world frame (+z up); rows clamp, columns wrap, linear filtering.
 function backdropTexture(backdrop) {
   const { width, height, radiance, visibility } = backdrop;
   const data = new Uint16Array(width * height * 4);
