@@ -117,6 +117,12 @@ class Backdrop:
         return cls(r.reshape(h, w, 3), v.reshape(h, w))
 
 
+def _view_texels(cams, i: int, h: int, w: int) -> torch.Tensor:
+    """int [H·W] the lat-long texel each pixel of view ``i`` of ``cams`` (on the CPU) looks into, row-major."""
+    d = generate_rays(cams, [i]).directions
+    return _texel_of(d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12), h, w)
+
+
 def _texel_of(directions: torch.Tensor, h: int, w: int) -> torch.Tensor:
     """int [R] the lat-long texel (row-major) a unit direction falls in."""
     theta, phi = latlong_angles(directions)
@@ -135,8 +141,7 @@ def background_visibility(views, height: int, width: int) -> np.ndarray:
     count = torch.zeros(height * width, dtype=torch.float64)
     cams = views.cameras.to("cpu")
     for i in range(len(cams)):
-        d = generate_rays(cams, [i]).directions
-        t = _texel_of(d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12), height, width)
+        t = _view_texels(cams, i, height, width)
         total.index_add_(0, t, (1.0 - views.opacity[i].reshape(-1).double()).clamp(0.0, 1.0))
         count.index_add_(0, t, torch.ones_like(t, dtype=torch.float64))
     vis = torch.where(count > 0, total / count.clamp_min(1.0), torch.zeros_like(total))
@@ -191,8 +196,7 @@ def _uncovered_radiance(views, covered: torch.Tensor, height: int, width: int) -
         keep = ~covered[i].reshape(-1)
         if not bool(keep.any()):
             continue
-        d = generate_rays(cams, [i]).directions[keep]
-        t = _texel_of(d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12), height, width)
+        t = _view_texels(cams, i, height, width)[keep]
         total.index_add_(0, t, views.values["rgb"][i].reshape(-1, 3)[keep].double().clamp_min(0.0))
         count.index_add_(0, t, torch.ones_like(t, dtype=torch.float64))
     mean = total / count.clamp_min(1.0)[:, None]
