@@ -6,8 +6,10 @@ baked twice — ``--bake-from points`` (the field's materials at each texel's su
 (each texel's albedo from the field's renders at the training views that see it, :mod:`toolkit.viewbake`). The views
 bake is written three times: without a backdrop (``views``: the preview draws the SH radiance where the mesh is not),
 with the field's learned background map alone where the photos saw it (``background``), and with export-asset's
-default backdrop (``backdrop``: the field's rendered colour wherever the mesh leaves a training pixel uncovered, the
-background map elsewhere; :mod:`toolkit.backdrop`). Each GLB's moderngl preview is scored against the test photos beside the field's own render
+backdrop of export-asset (``backdrop``: the field's rendered colour wherever the mesh leaves a training pixel uncovered,
+the background map elsewhere; :mod:`toolkit.backdrop`). These four have no light occlusion
+(``AssetConfig.light_occlusion=False``, the GLB of earlier versions); ``occlusion`` is export-asset's default: the
+backdrop GLB with the field's per-point light gain in its occlusion channel and the SH scaled to match. Each GLB's moderngl preview is scored against the test photos beside the field's own render
 (``bench_train._assets_depth_and_preview``: all test views, the field rendered once for both; the depth error where
 the scene has ground-truth depth; each GLB's albedo against the ground truth where the scene has it, beside the
 field's). Prints one row per run and bake, the gap to the field, and the mean and worst gap over the runs, and writes
@@ -26,6 +28,7 @@ import os
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,13 +58,14 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
     torch.set_num_threads(threads)
     loaded = load_run(run)  # once: the mesh, the bake, the comparison image and the no-residual score
     field = asset_field(loaded)
-    cfg = AssetConfig(view_rays=view_rays, depth_min_opacity=min_opacity, min_component=min_component)
+    cfg = AssetConfig(view_rays=view_rays, depth_min_opacity=min_opacity, min_component=min_component,
+                      light_occlusion=False)
     t0 = time.perf_counter()
     mesh, stats = build_mesh(field, cfg)
     print(f"[bench_bake] {run}: mesh of {mesh.num_faces} faces ({stats['method']}) in "
           f"{time.perf_counter() - t0:.0f} s", file=sys.stderr)
     t0 = time.perf_counter()
-    maps = view_maps(field, cfg)
+    maps = view_maps(field, replace(cfg, light_occlusion=True))  # with the light gain, for ``occlusion``
     render_s = time.perf_counter() - t0
     baked = {}
     for name, views in (("points", None), ("views", maps)):
@@ -81,6 +85,27 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
         export_gltf(uvmesh, textures, out / name / "scene.glb", sh=field.sh, extras=extras)
         baked[name] = {**baked["views"], "backdrop_texels_seen": float((backdrop.visibility > 0).mean()),
                        "backdrop_mean_visibility": float(backdrop.visibility.mean())}
+    # occlusion (the default): the backdrop GLB with the field's light gain in its occlusion channel, SH times s
+    if "backdrop" in baked and "light_gain" in maps.values:
+        t0 = time.perf_counter()
+        occ_cfg = replace(cfg, light_occlusion=True)
+        uvmesh, textures, bake = bake_mesh(mesh, field.material_fn, occ_cfg, views=maps)
+        sh = field.sh * bake["light_scale"]
+        backdrop = build_backdrop(field, maps, occ_cfg, uvmesh)
+        extras = Asset(mesh, uvmesh, textures, sh, {**stats, "bake": bake}, backdrop).gltf_extras()
+        (out / "occlusion").mkdir(parents=True, exist_ok=True)
+        export_gltf(uvmesh, textures, out / "occlusion" / "scene.glb", sh=sh, extras=extras)
+        baked["occlusion"] = {"bake_seconds": time.perf_counter() - t0 + render_s, "views": bake.get("views"),
+                              "light_scale": bake["light_scale"]}
+        # view_normals: the same with the normal map from the field's rendered normals (--normals-from views)
+        t0 = time.perf_counter()
+        nrm_cfg = replace(occ_cfg, normals_from="views")
+        uvmesh, textures, bake = bake_mesh(mesh, field.material_fn, nrm_cfg, views=maps)
+        backdrop = build_backdrop(field, maps, nrm_cfg, uvmesh)
+        extras = Asset(mesh, uvmesh, textures, sh, {**stats, "bake": bake}, backdrop).gltf_extras()
+        (out / "view_normals").mkdir(parents=True, exist_ok=True)
+        export_gltf(uvmesh, textures, out / "view_normals" / "scene.glb", sh=sh, extras=extras)
+        baked["view_normals"] = {**baked["occlusion"], "bake_seconds": time.perf_counter() - t0 + render_s}
     rows = _assets_depth_and_preview(run, {name: out / name for name in baked}, threads, albedo_vs_gt=True)
     for name, extra in baked.items():
         rows[name].update(extra, gap_db=rows[name]["field_psnr"] - rows[name]["preview_psnr"])
@@ -161,7 +186,7 @@ def main(argv=None) -> int:
                                            args.depth_min_opacity, args.min_component)
     print(f"{'run':<40} {'GLB':<10} {'field dB':>9} {'preview dB':>11} {'gap dB':>7} {'depth m':>8} {'bake s':>7} "
           f"{'albedo MAE (aligned) vs GT':>27}")
-    names = ("points", "views", "background", "backdrop")
+    names = ("points", "views", "background", "backdrop", "occlusion", "view_normals")
     for run, rows in results.items():
         for name in (n for n in names if n in rows):
             r = rows[name]
@@ -170,6 +195,8 @@ def main(argv=None) -> int:
             print(f"{run[-40:]:<40} {name:<10} {r['field_psnr']:9.2f} {r['preview_psnr']:11.2f} {r['gap_db']:7.2f} "
                   f"{'-' if depth is None else f'{depth:.3f}':>8} {r['bake_seconds']:7.0f} {alb_txt:>27}")
         print(f"{'':<40} photo | field | {' | '.join(n for n in names if n in rows)}: {rows['comparison_png']}")
+        if "occlusion" in rows:
+            print(f"{'':<40} occlusion: the GLB's SH is the run's x {rows['occlusion']['light_scale']:.3f}")
         if rows.get("field_without_residual_psnr") is not None:
             print(f"{'':<40} the field without its per-point light residual (global SH only, what a GLB can carry): "
                   f"{rows['field_without_residual_psnr']:.2f} dB")
@@ -182,7 +209,8 @@ def main(argv=None) -> int:
         if gaps:
             print(f"{name}: gap to the field mean {sum(gaps) / len(gaps):.2f} dB, worst {max(gaps):.2f} dB "
                   f"over {len(gaps)} run(s) (issue 16's bound: 4 dB)")
-    for a, b in (("views", "points"), ("background", "views"), ("backdrop", "views"), ("backdrop", "background")):
+    for a, b in (("views", "points"), ("background", "views"), ("backdrop", "views"), ("backdrop", "background"),
+                 ("occlusion", "backdrop"), ("view_normals", "occlusion")):
         gain = [rows[a]["preview_psnr"] - rows[b]["preview_psnr"] for rows in results.values() if a in rows]
         if gain:
             print(f"{a} vs {b}: preview {sum(gain) / len(gain):+.2f} dB mean, {min(gain):+.2f} dB worst")

@@ -28,13 +28,14 @@ CUBE_SH[0] += 2.5
 CUBE_SH[2] += 0.8  # brighter from above
 
 
-def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True, extras: dict | None = None) -> Path:
+def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True, extras: dict | None = None,
+                  occlusion: float = 1.0) -> Path:
     """A unit cube centred at the origin as a GLB: 6 faces in a 3 x 2 atlas (``cell`` px per face, 2 px margins),
     per-face albedo / roughness / metallic (:data:`CUBE_ALBEDO` …), one semantic primitive per face.
 
     ``pattern``: a checker in the base colour and a ripple in the normal map of faces 0, 2, 4 (tilting the normal
     along the face's tangent); without it every face is flat and uniform (an analytic reference is exact).
-    ``extras``: merged into the GLB's ``extras.dars`` (e.g. a backdrop).
+    ``extras``: merged into the GLB's ``extras.dars`` (e.g. a backdrop). ``occlusion``: ORM red on every face.
     """
     verts, uvs, nrms, faces, labels = [], [], [], [], []
     width, height = 3 * cell, 2 * cell
@@ -61,7 +62,7 @@ def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True, 
     check = (((xx // 8) + (yy // 8)) % 2)[..., None] if pattern else np.ones((height, width, 1))
     linear = CUBE_ALBEDO[face] * (0.55 + 0.45 * check)
     base_color = np.round(linear_to_srgb(linear) * 255).astype(np.uint8)
-    orm = np.stack([np.ones((height, width)), CUBE_ROUGHNESS[face], CUBE_METALLIC[face]], -1)
+    orm = np.stack([np.full((height, width), occlusion), CUBE_ROUGHNESS[face], CUBE_METALLIC[face]], -1)
     orm = np.round(orm * 255).astype(np.uint8)
     nt = np.zeros((height, width, 3))
     nt[..., 2] = 1.0

@@ -239,3 +239,36 @@ def test_build_asset_backdrop_holds_the_field_colour_around_the_mesh():
     assert is_colour[int(corner)] and bd.visibility.reshape(-1)[int(corner)] == 1.0  # past the sphere: the colour
     assert not is_colour[int(centre)]  # at the sphere, seen by no other camera: the background map
     assert 0.02 < is_colour.mean() < 0.5
+
+
+def test_build_asset_carries_the_light_gain_as_occlusion_and_scales_the_sh(tmp_path):
+    """A views callable that takes ``light_gain`` is asked for it; every opaque pixel brightened x2 gives the scale
+    s = 2: the GLB's SH is twice the run's (and says so in its extras), and a texel no view sees keeps the run's
+    light (occlusion 1/s). ``light_occlusion=False`` leaves occlusion 1 and the run's SH."""
+    from toolkit.cli.asset import export_glb
+
+    calls = []
+    field = _sphere_field([])
+
+    def views(cams, light_gain=False):  # opaque everywhere but 50 m away: no texel is seen, the scale is set
+        calls.append(light_gain)
+        v, h, w = len(cams), int(cams.height[0]), int(cams.width[0])
+        vals = {"albedo": torch.zeros(v, h, w, 3)}
+        if light_gain:
+            vals["light_gain"] = torch.full((v, h, w), 2.0)
+        return ViewMaps(cams, torch.full((v, h, w), 50.0), torch.ones(v, h, w), vals)
+
+    cfg = AssetConfig(method="mc", resolution=32, faces=600, texture=64, level=100.0, backdrop=False)
+    asset = build_asset(field._replace(views=views), cfg)
+    assert calls == [True] and asset.stats["bake"]["light_scale"] == 2.0
+    np.testing.assert_allclose(np.asarray(asset.sh), 2.0 * field.sh.numpy())
+    red = asset.textures.orm[asset.textures.mask][:, 0]
+    assert np.abs(red.astype(int) - 128).max() <= 1
+    assert asset.gltf_extras()["light_scale"] == 2.0
+    loaded = load_glb(export_glb(asset, tmp_path / "scene.glb", sh=asset.sh))
+    np.testing.assert_allclose(loaded.sh, 2.0 * field.sh.numpy(), atol=1e-6)
+    calls.clear()
+    off = build_asset(field._replace(views=views), AssetConfig(**{**cfg.__dict__, "light_occlusion": False}))
+    assert calls == [False] and off.stats["bake"]["light_scale"] == 1.0 and "light_scale" not in off.gltf_extras()
+    assert (off.textures.orm[off.textures.mask][:, 0] == 255).all()
+    np.testing.assert_allclose(np.asarray(off.sh), field.sh.numpy())

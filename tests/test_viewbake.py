@@ -90,3 +90,96 @@ def test_bake_mesh_from_views_bakes_what_the_views_show():
     _, tex, stats = bake_mesh(quad, _blue, cfg)
     assert stats["bake_from"] == "points" and "views" not in stats
     assert np.allclose(srgb_to_linear(tex.base_color[tex.mask] / 255.0).mean(0), [0.0, 0.0, 1.0], atol=0.01)
+
+
+def test_view_projected_light_gain_defaults_to_no_change():
+    """``light_gain`` (no material key) is the views' mean where they see a point and 1 elsewhere."""
+    m = _maps()
+    gain = torch.tensor([0.5, 1.0, 2.0, 2.0])[:, None, None].expand(4, SIZE, SIZE).clone()
+    maps = ViewMaps(m.cameras, m.depth, m.opacity, {**m.values, "light_gain": gain})
+    out = view_projected(_blue, maps, keys=("albedo", "light_gain"))(torch.tensor([[0.1, 0.1, 0.0], [9.0, 9, 0]]))
+    assert torch.allclose(out["light_gain"], torch.tensor([0.75, 1.0]))  # A and B see the floor; nobody the other
+
+
+def test_light_gain_map():
+    from toolkit.train.run import LIGHT_GAIN_MAX, light_gain_map
+
+    shaded = torch.tensor([[0.2, 0.4, 0.6], [0.2, 0.4, 0.6], [1.0, 1.0, 1.0], [9.0, 9.0, 9.0], [0.3, 0.3, 0.3]])
+    glob = torch.tensor([[0.1, 0.2, 0.3], [0.4, 0.8, 1.2], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.1, 0.1, 0.1]])
+    opacity = torch.tensor([1.0, 0.9, 1.0, 1.0, 0.3])
+    gain = light_gain_map(shaded, glob, opacity)
+    # brighter x2, darker /2, black under the global light: 1, clamped, too translucent: 1
+    assert torch.allclose(gain, torch.tensor([2.0, 0.5, 1.0, LIGHT_GAIN_MAX, 1.0]))
+
+
+def _floor_quad():
+    v = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]], np.float32)
+    up = np.tile([[0, 0, 1.0]], (4, 1)).astype(np.float32)
+    return Mesh(v, np.array([[0, 1, 2], [0, 2, 3]], np.int64), normals=up)
+
+
+def test_bake_mesh_puts_the_light_gain_in_the_occlusion_channel():
+    """With views holding ``light_gain``, ORM red is the texel's gain over the scale s (the gain's 0.99 quantile over
+    opaque pixels: 2 here, view D is translucent) and the statistics give s; off, red is 1 and s is 1."""
+    from toolkit.asset import AssetConfig, bake_mesh, light_scale
+
+    m = _maps()
+    gain = torch.tensor([0.5, 1.0, 2.0, 6.0])[:, None, None].expand(4, SIZE, SIZE).clone()
+    maps = ViewMaps(m.cameras, m.depth, m.opacity, {**m.values, "light_gain": gain})
+    assert light_scale(maps) == pytest.approx(2.0)
+    _, tex, stats = bake_mesh(_floor_quad(), _blue, AssetConfig(texture=64), views=maps)
+    red = tex.orm[tex.mask][:, 0].astype(np.float64) / 255.0
+    assert np.allclose(red, 0.75 / 2.0, atol=1.5 / 255) and stats["light_scale"] == pytest.approx(2.0)
+    _, tex, stats = bake_mesh(_floor_quad(), _blue, AssetConfig(texture=64, light_occlusion=False), views=maps)
+    assert (tex.orm[tex.mask][:, 0] == 255).all() and stats["light_scale"] == 1.0
+    _, tex, stats = bake_mesh(_floor_quad(), _blue, AssetConfig(texture=64), views=_maps())  # no gain in the views
+    assert (tex.orm[tex.mask][:, 0] == 255).all() and stats["light_scale"] == 1.0
+    dim = ViewMaps(m.cameras, m.depth, m.opacity, {**m.values, "light_gain": gain * 0.1})
+    assert light_scale(dim) == 1.0  # never below 1: a field that only darkens keeps its SH
+
+
+def test_render_view_maps_light_gain_follows_the_residual(tmp_path):
+    """A run's renders carry ``light_gain`` only when asked for and when the field has a light residual: 1 where the
+    residual is zero, ≥ 1 where it only adds light; the residual head is left in place."""
+    from synthetic import make_scene
+    from toolkit.train import load_run, make_config, train
+    from toolkit.train.run import render_view_maps
+
+    scene = make_scene(tmp_path / "s", n_train=4, n_test=1, size=16)
+    train(scene, tmp_path / "r", make_config("fast", steps=30, batch_rays=256), progress_bar=False,
+          log=lambda m: None)
+    run = load_run(tmp_path / "r", with_weights=False)
+    cams = run.train_scene.cameras
+    assert "light_gain" not in render_view_maps(run, cams, progress=False).values
+    head = run.field.light_head
+    last = head[-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.zero_()
+    maps = render_view_maps(run, cams, progress=False, light_gain=True)
+    assert run.field.light_head is head
+    assert maps.values["light_gain"].shape == maps.opacity.shape
+    assert torch.allclose(maps.values["light_gain"], torch.ones(()), atol=1e-4)
+    with torch.no_grad():
+        last.bias[:3] = 3.0  # Δl on L00 only, positive: more light everywhere
+    gain = render_view_maps(run, cams, progress=False, light_gain=True).values["light_gain"]
+    opaque = maps.opacity >= 0.5
+    assert opaque.any() and (gain >= 1 - 1e-4).all() and (gain[opaque] > 1.2).all()
+
+
+def test_bake_mesh_takes_the_normal_map_from_the_views_when_asked():
+    """``normals_from="views"``: the normal map holds the mean of the rendered normals of the views that see a texel
+    (tilted 37° here), where the point query has none (the flat map); a texel no view sees keeps the mesh normal."""
+    from toolkit.asset import AssetConfig, bake_mesh
+
+    m = _maps()
+    tilt = torch.tensor([0.6, 0.0, 0.8]).expand(4, SIZE, SIZE, 3).clone()
+    maps = ViewMaps(m.cameras, m.depth, m.opacity, {**m.values, "normal": tilt})
+    _, tex, _ = bake_mesh(_floor_quad(), _blue, AssetConfig(texture=64, normals_from="views"), views=maps)
+    nt = tex.normal[tex.mask].astype(np.float64) / 255.0 * 2.0 - 1.0
+    assert np.allclose(nt[:, 2], 0.8, atol=0.02) and np.allclose(np.hypot(nt[:, 0], nt[:, 1]), 0.6, atol=0.02)
+    _, flat, _ = bake_mesh(_floor_quad(), _blue, AssetConfig(texture=64), views=maps)  # default: the points'
+    assert np.allclose(flat.normal[flat.mask].astype(np.float64) / 255.0 * 2.0 - 1.0, [0, 0, 1], atol=0.01)
+    far = Mesh(_floor_quad().vertices + np.float32([20, 0, 0]), _floor_quad().faces, normals=_floor_quad().normals)
+    _, unseen, _ = bake_mesh(far, _blue, AssetConfig(texture=64, normals_from="views"), views=maps)
+    assert np.allclose(unseen.normal[unseen.mask].astype(np.float64) / 255.0 * 2.0 - 1.0, [0, 0, 1], atol=0.01)

@@ -238,6 +238,25 @@ def test_lit_render_matches_shade_pbr_at_raycast_hits(gl, flat_cube_glb):
     assert err.max() < 2.5 / 255, f"max |render - shade_pbr| = {err.max() * 255:.2f}/255"
 
 
+def test_occlusion_channel_scales_the_lit_colour(gl, flat_cube_glb, tmp_path):
+    """ORM red (glTF occlusion) multiplies the SH lighting, diffuse and specular (dars bakes the field's light gain
+    into it): a cube at occlusion 0.5 renders at half the linear radiance of the same cube at 1."""
+    from toolkit.io import srgb_to_linear
+    from viewers.preview import OffscreenPreview, PreviewConfig
+
+    half = textured_cube(tmp_path / "half.glb", pattern=False, occlusion=0.5)
+    cam = _cam([1.4, -2.2, 1.3])
+    imgs = []
+    for glb in (flat_cube_glb, half):
+        with OffscreenPreview(glb, ctx=gl) as view:
+            img = view.render(cam, PreviewConfig(exposure=-1.0))
+        imgs.append(srgb_to_linear(img.to_float()[img.mask]))
+    full, dim = imgs
+    bright = full > 0.05
+    ratio = dim[bright] / full[bright]
+    assert bright.sum() > 1000 and abs(np.median(ratio) - 128 / 255) < 0.01, np.median(ratio)
+
+
 def test_normal_map_decodes_to_the_baked_field_normal(gl, tmp_path):
     """Bake a tilted normal field onto a sphere (toolkit.bake), export, render ``normals``: the decoded world normal
     matches the field's at the ray-cast hit (tangent frame, handedness and axis conversion agree with the bake)."""
@@ -348,6 +367,15 @@ def test_relighting_swaps_the_sh(gl, cube_glb, tmp_path):
     assert "grey.hdr" in source
     with pytest.raises(DarsError, match="either"):
         resolve_sh(asset, sh_json=tmp_path / "same.json", probe=tmp_path / "grey.hdr")
+    # a GLB whose occlusion carries the light gain over a scale: a relight is scaled by it, its own light is not
+    scaled = load_glb(textured_cube(tmp_path / "scaled.glb", extras={"light_scale": 1.5}, occlusion=0.5))
+    relit, source = resolve_sh(scaled, probe=tmp_path / "grey.hdr")
+    np.testing.assert_allclose(relit, 1.5 * sh)
+    assert "x 1.5" in source
+    np.testing.assert_allclose(resolve_sh(scaled)[0], CUBE_SH)
+    bad = load_glb(textured_cube(tmp_path / "bad.glb", extras={"light_scale": -1}))
+    with pytest.raises(DarsError, match="light_scale"):
+        resolve_sh(bad, sh_json=tmp_path / "same.json")
 
 
 def test_sh_from_gltf_ibl_inverts_the_exporter():

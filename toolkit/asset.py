@@ -12,6 +12,7 @@ Example:
 
 from __future__ import annotations
 
+import inspect
 import io
 import math
 import time
@@ -96,6 +97,16 @@ class AssetConfig:
     smaller pixel grid, :func:`depth_cameras`)."""
     view_tolerance: float = 0.1
     """``views``: a view sees a texel when the texel's depth is within this fraction of the rendered depth."""
+    normals_from: Literal["views", "points"] = "points"
+    """``views``: a texel's normal (the normal map) is the mean of the field's rendered normals over the views that
+    see it, like the albedo; ``points``: the field's normal at the texel's surface point."""
+    light_occlusion: bool = True
+    """``views``, for a field with a per-point light residual Δl(x): carry it in the GLB's occlusion channel. Each
+    texel's occlusion is its light gain (how much Δl(x) brightens or darkens the field's shaded colour there, mean
+    over the views that see it, :func:`toolkit.train.run.light_gain_map`) over a scale ``s`` (the gain's
+    :data:`LIGHT_SCALE_QUANTILE` quantile over the rendered pixels, at least 1), and the GLB's SH is the run's times
+    ``s``: a viewer that multiplies its SH lighting by the occlusion (ours, three.js) shades each texel with gain ×
+    the run's light. Off: occlusion 1 and the run's SH (the GLB of earlier versions)."""
     backdrop: bool = True
     """Store a backdrop in the GLB (:mod:`toolkit.backdrop`: what the viewers draw where the mesh is not — a
     gallery's sky, the white behind an object, the holes in the mesh): the field's rendered colour in the directions
@@ -135,6 +146,8 @@ class AssetConfig:
             raise ConfigError(f"--ao-samples {self.ao_samples} must be ≥ 0")
         if self.bake_from not in ("views", "points"):
             raise ConfigError(f"--bake-from {self.bake_from!r}: choose views or points")
+        if self.normals_from not in ("views", "points"):
+            raise ConfigError(f"--normals-from {self.normals_from!r}: choose views or points")
         if self.view_rays < 64:
             raise ConfigError(f"--view-rays {self.view_rays} must be ≥ 64")
         if not 0.0 < self.view_tolerance <= 0.5:
@@ -165,6 +178,9 @@ class Asset:
     def gltf_extras(self) -> dict:
         """What the GLB stores in its ``extras.dars``: the mesh statistics and the backdrop (when there is one)."""
         extras: dict = {"mesh_stats": {k: self.stats[k] for k in ("vertices", "faces", "area_m2", "method")}}
+        scale = self.stats.get("bake", {}).get("light_scale", 1.0)
+        if scale != 1.0:  # the SH is the run's times this; the occlusion channel carries the light gain over it
+            extras["light_scale"] = scale
         if self.backdrop is not None:
             extras["backdrop"] = self.backdrop.to_json()
         return extras
@@ -296,10 +312,12 @@ def view_maps(field: FieldCallables, cfg: AssetConfig = AssetConfig(), log=None)
             log("[dars] --bake-from views: the field has no renderer or no training cameras; baking point queries")
         return None
     cams = depth_cameras(field.cameras, cfg.view_rays)
+    gain = cfg.light_occlusion and cfg.bake_from == "views" and "light_gain" in inspect.signature(views).parameters
     if log is not None:
         why = "the view-projected bake" if cfg.bake_from == "views" else "the backdrop's visibility"
-        log(f"[dars] rendering the {len(cams)} training views at {int(cams.width[0])}x{int(cams.height[0])} for {why}")
-    return views(cams)
+        log(f"[dars] rendering the {len(cams)} training views at {int(cams.width[0])}x{int(cams.height[0])} for {why}"
+            + (" (twice where the field has a light residual: its light gain, for the occlusion)" if gain else ""))
+    return views(cams, light_gain=True) if gain else views(cams)
 
 
 def build_backdrop(field: FieldCallables, views, cfg: AssetConfig = AssetConfig(), mesh=None):
@@ -317,6 +335,38 @@ def build_backdrop(field: FieldCallables, views, cfg: AssetConfig = AssetConfig(
     return backdrop_from_views(field.background, views, covered)
 
 
+LIGHT_SCALE_QUANTILE = 0.99
+"""The light gain quantile (over the opaque rendered pixels) the GLB's SH is scaled by
+(``AssetConfig.light_occlusion``): texels brighter than it are clipped at occlusion 1."""
+
+
+def light_scale(views) -> float:
+    """The scale ``s`` of ``AssetConfig.light_occlusion``: the :data:`LIGHT_SCALE_QUANTILE` quantile of the views'
+    ``light_gain`` over pixels at least half opaque, at least 1 (1 when no pixel is)."""
+    import torch
+
+    gain = views.values["light_gain"][views.opacity >= 0.5].float()
+    if gain.numel() == 0:
+        return 1.0
+    if gain.numel() > 1_000_000:  # torch.quantile's limit: an even subsample
+        gain = gain[torch.linspace(0, gain.numel() - 1, 1_000_000).long()]
+    return round(max(1.0, float(torch.quantile(gain, LIGHT_SCALE_QUANTILE))), 4)
+
+
+def _with_occlusion(texel_fn, scale: float):
+    """``texel_fn`` with its ``light_gain`` turned into ``occlusion`` = gain / ``scale`` clamped to [0, 1]."""
+
+    import torch
+
+    def fn(points, normals=None):
+        out = dict(texel_fn(points, normals))
+        gain = torch.as_tensor(out.pop("light_gain"), dtype=torch.float32)
+        out["occlusion"] = (gain / scale).clamp(0.0, 1.0)
+        return out
+
+    return fn
+
+
 def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=None,
               views=None) -> tuple[UVMesh, PBRTextures, dict]:
     """The bake half: UV-unwrap ``mesh``, label its faces and bake PBR textures from ``material_fn``; ``log``: an
@@ -324,11 +374,13 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
 
     Args:
         views: :class:`toolkit.viewbake.ViewMaps` (:func:`view_maps`): the albedo comes from the views that see each
-            texel (:func:`toolkit.viewbake.view_projected`); None: point queries only.
+            texel (:func:`toolkit.viewbake.view_projected`), and, when they hold ``light_gain`` and
+            ``cfg.light_occlusion`` is on, the occlusion too; None: point queries only.
 
     Returns:
         (uvmesh, textures, statistics ``texture``, ``supersample``, ``uv_vertices``, timings, ``chart_coverage``,
-        ``defaults``, ``bake_from`` and, from views, ``views`` (count, size, tolerance, share of texels seen)).
+        ``defaults``, ``bake_from`` and, from views, ``views`` (count, size, tolerance, share of texels seen) and
+        ``light_scale``: the factor the GLB's SH must be scaled by, 1 without the occlusion).
     """
     from .bake import BakeConfig, UnwrapConfig, bake_pbr_textures, label_faces, unwrap_uv
     from .viewbake import view_projected
@@ -342,13 +394,23 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
         log(f"[dars] UV atlas done in {t1 - t0:.0f} s")
     uvmesh = label_faces(uvmesh, material_fn, device=cfg.device)
     seen: dict = {}
-    texel_fn = material_fn if views is None else view_projected(material_fn, views, cfg.view_tolerance, stats=seen)
+    scale = 1.0
+    if views is None:
+        texel_fn = material_fn
+    else:
+        keys = ("albedo", *(("normal",) if cfg.normals_from == "views" and "normal" in views.values else ()))
+        if cfg.light_occlusion and "light_gain" in views.values:
+            scale = light_scale(views)
+            keys = (*keys, "light_gain")
+        texel_fn = view_projected(material_fn, views, cfg.view_tolerance, keys=keys, stats=seen)
+        if "light_gain" in keys:
+            texel_fn = _with_occlusion(texel_fn, scale)
     textures = bake_pbr_textures(uvmesh, texel_fn, BakeConfig(size=cfg.texture, supersample=cfg.supersample,
                                                                ao_samples=cfg.ao_samples, device=cfg.device))
     stats = {"texture": cfg.texture, "supersample": cfg.supersample, "uv_vertices": uvmesh.num_vertices,
              "unwrap_seconds": round(t1 - t0, 3), "bake_seconds": round(time.perf_counter() - t1, 3),
              "chart_coverage": round(float(textures.mask.mean()), 4), "defaults": list(textures.defaults),
-             "bake_from": "points" if views is None else "views"}
+             "bake_from": "points" if views is None else "views", "light_scale": round(scale, 4)}
     if views is not None:
         stats["views"] = {"count": len(views.cameras), "width": int(views.cameras.width[0]),
                           "height": int(views.cameras.height[0]), "tolerance": cfg.view_tolerance,
@@ -380,7 +442,10 @@ def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = Asset
         stats["backdrop"] = {"height": backdrop.shape[0], "width": backdrop.shape[1],
                              "texels_seen": round(float((vis > 0).mean()), 4),
                              "mean_visibility": round(float(vis.mean()), 4)}
-    return Asset(mesh, uvmesh, textures, field.sh, stats, backdrop)
+    sh = field.sh
+    if sh is not None and bake_stats["light_scale"] != 1.0:  # the occlusion carries gain / s: the light is s times
+        sh = sh * bake_stats["light_scale"]
+    return Asset(mesh, uvmesh, textures, sh, stats, backdrop)
 
 
 def write_textures(textures: PBRTextures, out: str | Path) -> None:

@@ -7,7 +7,7 @@ Conventions:
   ``(u, v)`` is ``(u, 1 − v)`` in OBJ/Blender/OpenGL-texture convention. Baking rasterises in this space with a
   numpy rasteriser, so there is no GL framebuffer and no y flip anywhere (a GL bake would have to flip rows).
 * **Textures** (:class:`PBRTextures`, glTF 2.0 channel layout): ``base_color`` sRGB-encoded linear albedo;
-  ``orm`` linear, R = ambient occlusion (1 unless ``BakeConfig.ao_samples`` > 0), G = roughness, B = metallic
+  ``orm`` linear, R = occlusion (1 unless there is some, below), G = roughness, B = metallic
   (glTF's ``metallicRoughnessTexture`` reads G and B, ``occlusionTexture`` reads R of the same image);
   ``normal`` tangent-space normal map ``(n_t + 1)/2``, +x = tangent (increasing u), +y = green = bitangent
   (decreasing glTF v, i.e. "up" in the image, as glTF/OpenGL expect), +z = the interpolated vertex normal.
@@ -19,6 +19,8 @@ Conventions:
 Field interface: ``material_fn(points float [N, 3], normals float [N, 3] | None) -> dict`` with keys ``albedo``
 [N, 3] linear in [0, 1], ``roughness`` [N], ``metallic`` [N], ``normal`` [N, 3] (unit, world space), ``semantic``
 [N] int class ids; missing keys are baked with :data:`DEFAULT_MATERIAL` and listed in ``PBRTextures.defaults``.
+An optional ``occlusion`` [N] in [0, 1] is baked into ORM red (times the ray-cast ambient occlusion when
+``BakeConfig.ao_samples`` > 0); without it, red is that ambient occlusion alone (1 when there is none).
 """
 
 from __future__ import annotations
@@ -544,8 +546,10 @@ def bake_pbr_textures(uvmesh: UVMesh, material_fn: MaterialFn, cfg: BakeConfig =
             else:
                 missing.add("normal")
                 nmap[s:e] = (0.0, 0.0, 1.0)
+            if "occlusion" in out:
+                occl[s:e] = _get(out, "occlusion", (m,), missing)
             if cfg.ao_samples > 0:
-                occl[s:e] = _ambient_occlusion(ao_scene, pos, n, cfg.ao_samples, ao_dist, seed=cfg.seed + s)
+                occl[s:e] *= _ambient_occlusion(ao_scene, pos, n, cfg.ao_samples, ao_dist, seed=cfg.seed + s)
             bar.update(m)
     finally:
         bar.close()

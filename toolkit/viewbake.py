@@ -28,7 +28,11 @@ from ._checks import ConfigError, ShapeError
 from .bake import DEFAULT_MATERIAL
 from .cameras import Cameras, project_points
 
-__all__ = ["ViewMaps", "project_views", "view_projected"]
+__all__ = ["ViewMaps", "project_views", "view_projected", "VIEW_DEFAULTS"]
+
+VIEW_DEFAULTS: dict[str, object] = {**DEFAULT_MATERIAL, "light_gain": 1.0}
+"""What a point no view sees gets for a key the material callable lacks: the bake's defaults, and no change of
+light (``light_gain`` 1, :func:`toolkit.train.run.light_gain_map`)."""
 
 
 @dataclass(frozen=True)
@@ -116,8 +120,10 @@ def view_projected(material_fn: Callable, maps: ViewMaps, tolerance: float = 0.1
         for k in keys:
             if k in out:
                 base = torch.as_tensor(out[k]).to(torch.float32).clone()
+            elif k == "normal" and normals is not None:  # no field normal: the interpolated mesh normal
+                base = torch.as_tensor(normals, dtype=torch.float32).reshape(-1, 3).clone()
             else:  # the callable lacks the key: unseen points get the bake's default
-                base = torch.as_tensor(DEFAULT_MATERIAL[k], dtype=torch.float32).expand_as(means[k]).clone()
+                base = torch.as_tensor(VIEW_DEFAULTS[k], dtype=torch.float32).expand_as(means[k]).clone()
             base[seen] = means[k][seen]
             out[k] = base
         if stats is not None:

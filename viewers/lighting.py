@@ -23,7 +23,8 @@ from toolkit._checks import ConfigError, DarsError
 from toolkit.sh import (GLTF_SH_SIGNS, SH_C0, SH_IRRADIANCE_BANDS, WORLD_TO_Y_UP, check_sh_coeffs, read_sh_json,
                         rotate_sh)
 
-__all__ = ["DEFAULT_SH", "asset_sh", "sh_from_gltf_ibl", "sh_from_probe", "resolve_sh", "draws_backdrop"]
+__all__ = ["DEFAULT_SH", "asset_sh", "sh_from_gltf_ibl", "sh_from_probe", "resolve_sh", "draws_backdrop",
+           "light_scale"]
 
 _BAND_OF_K = (0, 1, 1, 1, 2, 2, 2, 2, 2)
 
@@ -83,16 +84,34 @@ def sh_from_probe(path: str | Path, layout: Literal["latlong", "angular"] = "lat
     return fit_sh_probe(img, layout=layout, rotation=rot).coeffs.double().numpy()
 
 
+def light_scale(asset) -> float:
+    """The GLB's ``extras.dars.light_scale`` (1 when absent): its SH is the run's times this, and its occlusion
+    channel holds the field's per-point light gain divided by it (:attr:`toolkit.asset.AssetConfig.light_occlusion`)."""
+    dars = ((getattr(asset, "json", None) or {}).get("extras") or {}).get("dars") or {}
+    value = dars.get("light_scale", 1.0)
+    if not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
+        raise DarsError(f"GLB extras.dars.light_scale={value!r} must be a positive number; re-export the GLB")
+    return float(value)
+
+
 def resolve_sh(asset, sh_json: str | Path | None = None, probe: str | Path | None = None,
                probe_layout: Literal["latlong", "angular"] = "latlong") -> tuple[np.ndarray, str]:
     """The light to preview with: ``sh_json`` or ``probe`` if given (relighting), else the asset's, else
-    :data:`DEFAULT_SH`. Returns ``(sh [9, 3], source description)``."""
+    :data:`DEFAULT_SH`. Returns ``(sh [9, 3], source description)``.
+
+    A relight of a GLB with a ``light_scale`` (:func:`light_scale`) is multiplied by it, so the occlusion channel
+    (the field's light gain over that scale) modulates the new light as it did the run's, at the same level."""
     if sh_json is not None and probe is not None:
         raise DarsError("give either an SH JSON or an HDR probe, not both")
-    if sh_json is not None:
-        return read_sh_json(sh_json), f"SH JSON {sh_json}"
-    if probe is not None:
-        return sh_from_probe(probe, probe_layout), f"probe {probe} ({probe_layout})"
+    if sh_json is not None or probe is not None:
+        if sh_json is not None:
+            sh, source = read_sh_json(sh_json), f"SH JSON {sh_json}"
+        else:
+            sh, source = sh_from_probe(probe, probe_layout), f"probe {probe} ({probe_layout})"
+        scale = light_scale(asset)
+        if scale != 1.0:
+            sh, source = sh * scale, f"{source} x {scale:g} (the GLB's light_scale)"
+        return sh, source
     sh = asset_sh(asset)
     if sh is not None:
         return sh, "asset"

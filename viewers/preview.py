@@ -4,7 +4,8 @@ The fragment shader calls ``dars_shade_pbr``, generated from :mod:`toolkit.shadi
 (a test holds the two together). Per fragment:
 
 * base colour: ``baseColorTexture`` uploaded as ``SRGB8_ALPHA8`` (hardware sRGB → linear before filtering) times
-  ``baseColorFactor``; ORM: G roughness, B metallic (times the factors); tangent-space normal map decoded with the
+  ``baseColorFactor``; ORM: R occlusion (scales the lit colour), G roughness, B metallic (times the factors);
+  tangent-space normal map decoded with the
   GLB's TANGENT (xyz re-orthogonalised against the interpolated normal, bitangent ``w · cross(n, t)``) — the frame
   :mod:`toolkit.bake` encodes with. Textures sample trilinearly with clamp-to-edge, as the GLB's sampler says.
 * Geometry is drawn as stored (glTF +y up); the camera is rotated into that frame (:mod:`viewers.camera`) and the
@@ -181,7 +182,9 @@ void main() {
     vec3 display;
     if (u_mode == 0) {
         DarsShading s = dars_shade_pbr(albedo, roughness, metallic, n_world, v_world, u_sh);
-        display = dars_linear_to_srgb(clamp(s.colour * u_exposure_scale, 0.0, 1.0));
+        // glTF occlusion (ORM red) scales the SH lighting, diffuse and specular: three.js (the WebXR page) does
+        // the same; dars bakes the field's per-point light gain into it (toolkit.asset.AssetConfig.light_occlusion)
+        display = dars_linear_to_srgb(clamp(s.colour * orm.r * u_exposure_scale, 0.0, 1.0));
     } else if (u_mode == 1) {
         display = dars_linear_to_srgb(albedo);
     } else if (u_mode == 2) {

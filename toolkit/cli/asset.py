@@ -62,7 +62,8 @@ def add_mesh_options(q: argparse.ArgumentParser) -> None:
 
 
 def add_bake_options(q: argparse.ArgumentParser, backdrop: bool = True) -> None:
-    """The bake options; ``backdrop``: also ``--no-backdrop`` (commands that write a GLB)."""
+    """The bake options; ``backdrop``: also ``--no-backdrop`` and ``--no-light-occlusion`` (commands that write a
+    GLB)."""
     q.add_argument("--texture", type=number(int, min=16, max=16384), default=1024,
                    help="texture size in texels (square, 16-16384)")
     q.add_argument("--supersample", type=int, default=1, choices=(1, 2), help="bake at 2x and box-filter down")
@@ -73,10 +74,17 @@ def add_bake_options(q: argparse.ArgumentParser, backdrop: bool = True) -> None:
                         "texel's surface point (also used where no view sees a texel)")
     q.add_argument("--view-rays", type=number(int, min=64), default=300_000,
                    help="--bake-from views: at most this many rendered pixels over all training views")
+    q.add_argument("--normals-from", choices=("views", "points"), default="points",
+                   help="--bake-from views: views: the normal map is the mean of the field's rendered normals over "
+                        "the views that see a texel; points (default): the field's normal at the texel's surface point")
     q.add_argument("--view-tolerance", type=number(float, above=0, max=0.5), default=0.1,
                    help="--bake-from views: a view sees a texel when its depth is within this fraction of the "
                         "rendered depth")
     if backdrop:
+        q.add_argument("--no-light-occlusion", dest="light_occlusion", action="store_false",
+                       help="--bake-from views: leave the field's per-point light out of the GLB's occlusion channel "
+                            "(occlusion 1, the run's own SH); by default each texel's occlusion is its light gain "
+                            "over a scale s and the GLB's SH is the run's times s")
         q.add_argument("--no-backdrop", dest="backdrop", action="store_false",
                        help="store no backdrop in the GLB (what the viewers draw where the mesh is not — a gallery's "
                             "sky, the white behind an object, holes in the mesh — taken from the field's renders)")
@@ -122,7 +130,7 @@ def asset_config(args: argparse.Namespace):
 
     names = ("method", "resolution", "level", "level_quantile", "faces", "simplify", "min_component", "min_seen",
              "keep_unseen", "depth_samples", "depth_min_opacity", "depth_rays", "texture", "supersample", "ao_samples",
-             "bake_from", "view_rays", "view_tolerance", "backdrop", "device")
+             "bake_from", "view_rays", "normals_from", "view_tolerance", "light_occlusion", "backdrop", "device")
     return AssetConfig(**{k: getattr(args, k) for k in names if hasattr(args, k)})
 
 
@@ -179,7 +187,8 @@ def cmd_bake(args: argparse.Namespace) -> int:
     from ..io import write_json
     from ..mesh import load_mesh
 
-    cfg = replace(asset_config(args), backdrop=False)  # textures and an OBJ: no GLB to carry a backdrop
+    # textures and an OBJ: no GLB to carry a backdrop, nor the SH scale the light occlusion needs
+    cfg = replace(asset_config(args), backdrop=False, light_occlusion=False)
     _require_run(args.run)
     mesh_path = Path(args.mesh) if args.mesh else Path(args.run) / "mesh" / "mesh.ply"
     if not mesh_path.is_file():

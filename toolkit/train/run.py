@@ -191,7 +191,8 @@ class FieldCallables(NamedTuple):
         space: the field's :class:`toolkit.space.SceneSpace` (None: bounded by ``aabb``). With contraction the
             region to mesh comes from the training rays (:func:`toolkit.mesh.surface_region`).
         views: ``views(cameras) -> ViewMaps``: the field's own composited renders (albedo, roughness, metallic,
-            depth, opacity) at ``cameras`` (:func:`render_view_maps`), for the view-projected bake
+            colour, depth, opacity; ``views(cameras, light_gain=True)`` also the light gain where the callable takes
+            that keyword) at ``cameras`` (:func:`render_view_maps`), for the view-projected bake
             (:mod:`toolkit.viewbake`); None when the field has no renderer (the bake queries points).
         background: float [h, w, 3] the run's learned background as a lat-long linear radiance map
             (:meth:`toolkit.pipeline.Background.radiance_map`; the GLB's backdrop, :mod:`toolkit.backdrop`), or None.
@@ -264,32 +265,69 @@ def run_field_callables(run: Run) -> FieldCallables:
     d, m = field_callables(run)
     return FieldCallables(d, m, run.train_scene.aabb.clone(), run.l_env.detach().cpu().clone(),
                           run.train_scene.cameras, run.field.space.to("cpu") if run.cfg.field.contraction else None,
-                          lambda cameras: render_view_maps(run, cameras),
+                          lambda cameras, light_gain=False: render_view_maps(run, cameras, light_gain=light_gain),
                           run.background.radiance_map().detach().float().cpu().clone())
 
 
-VIEW_MAP_KEYS = ("albedo", "roughness", "metallic", "rgb")
-"""The composited outputs :func:`render_view_maps` keeps: the material channels a GLB bakes, and the colour (linear
-RGB, the background composited) its backdrop takes where the mesh is not (:func:`toolkit.backdrop.backdrop_from_views`)."""
+VIEW_MAP_KEYS = ("albedo", "roughness", "metallic", "normal", "rgb")
+"""The composited outputs :func:`render_view_maps` keeps: the material channels and the rendered (unit, world) normal
+a GLB bakes, and the colour (linear RGB, the background composited) its backdrop takes where the mesh is not
+(:func:`toolkit.backdrop.backdrop_from_views`).
+Asked for, a field with a light residual also gets ``light_gain`` (:func:`light_gain_map`)."""
+
+LIGHT_GAIN_MAX = 8.0
+"""``light_gain`` is clamped to [0, this]."""
 
 
-def render_view_maps(run: Run, cameras: Cameras, progress: bool = True):
+def light_gain_map(shaded: torch.Tensor, shaded_global: torch.Tensor, opacity: torch.Tensor,
+                   min_opacity: float = 0.5) -> torch.Tensor:
+    """How much the field's per-point light Δl(x) brightens (> 1) or darkens (< 1) each pixel: the luminance of its
+    shaded colour (diffuse + specular, linear) over that of the same render lit by the global SH alone. 1 where the
+    pixel is less opaque than ``min_opacity`` or shades to (nearly) black under the global light.
+
+    Args:
+        shaded, shaded_global: float [..., 3] composited diffuse + specular with and without the residual.
+        opacity: float [...] the pixels' opacity.
+    """
+    from ..metrics import REC709_LUMA
+
+    w = torch.tensor(REC709_LUMA, dtype=shaded.dtype, device=shaded.device)
+    num, den = shaded @ w, shaded_global @ w
+    ok = (opacity >= min_opacity) & (den > 1e-4)
+    gain = torch.where(ok, num / den.clamp_min(1e-4), torch.ones_like(num))
+    return gain.clamp(0.0, LIGHT_GAIN_MAX)
+
+
+def render_view_maps(run: Run, cameras: Cameras, progress: bool = True, light_gain: bool = False):
     """The run's own renders at ``cameras`` (one pixel grid), as :class:`toolkit.viewbake.ViewMaps`: composited
-    albedo (clamped to [0, 1]), roughness, metallic, colour, depth and opacity, rendered with the run's settings (the DARS
-    sampler's W maps included when the run has them)."""
+    albedo (clamped to [0, 1]), roughness, metallic, normal, colour, depth and opacity, rendered with the run's settings (the DARS
+    sampler's W maps included when the run has them). With ``light_gain``, a field with a per-point light residual
+    Δl(x) is rendered a second time with the global SH alone, for the ``light_gain`` map (:func:`light_gain_map`:
+    what the GLB's occlusion channel carries, :func:`toolkit.asset.bake_mesh`)."""
     from tqdm import tqdm
 
     from ..viewbake import ViewMaps
 
     if run.cfg.render_sampler.dars and run.weight_maps is None:  # loaded without them (load_field_callables)
         run.weight_maps = _weight_maps(run.train_scene, run.cfg, run.meta)
-    maps: dict[str, list] = {k: [] for k in (*VIEW_MAP_KEYS, "depth", "opacity")}
+    head = getattr(run.field, "light_head", None)
+    with_gain = light_gain and head is not None and run.cfg.shading == "pbr"
+    keys = (*VIEW_MAP_KEYS, "depth", "opacity")
+    maps: dict[str, list] = {k: [] for k in (*keys, *(("light_gain",) if with_gain else ()))}
     with torch.no_grad():
         for i in tqdm(range(len(cameras)), desc="rendering views for the bake", file=sys.stderr, unit="view",
                       disable=not progress):
             o = run.render(cameras, i)
-            for k in maps:
+            for k in keys:
                 maps[k].append(getattr(o, k).detach().float().cpu())
+            if with_gain:
+                run.field.light_head = None
+                try:
+                    g = run.render(cameras, i)
+                finally:
+                    run.field.light_head = head
+                maps["light_gain"].append(light_gain_map(o.diffuse + o.specular, g.diffuse + g.specular,
+                                                         o.opacity).float().cpu())
     stacked = {k: torch.stack(v) for k, v in maps.items()}
     stacked["albedo"] = stacked["albedo"].clamp(0, 1)
     return ViewMaps(cameras.to("cpu"), stacked.pop("depth"), stacked.pop("opacity"), stacked)

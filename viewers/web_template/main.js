@@ -68,7 +68,11 @@ function useDarsShading(material) {
     shader.uniforms.u_dfg = { value: dfgTexture };
     shader.fragmentShader = shader.fragmentShader
       .replace('#include <lights_physical_pars_fragment>', DARS_PARS)
-      .replace('#include <roughnessmap_fragment>', '#include <roughnessmap_fragment>\ndarsRoughness = roughnessFactor;');
+      .replace('#include <roughnessmap_fragment>', '#include <roughnessmap_fragment>\ndarsRoughness = roughnessFactor;')
+      // three scales only the diffuse SH light by the occlusion (ORM red) when there is no envMap; dars bakes the
+      // field's per-point light gain into it and scales both, as the moderngl preview does
+      .replace('#include <aomap_fragment>',
+        '#include <aomap_fragment>\n#ifdef USE_AOMAP\nreflectedLight.indirectSpecular *= ambientOcclusion;\n#endif');
   };
   material.customProgramCacheKey = () => 'dars-shading';
   material.needsUpdate = true;
