@@ -124,3 +124,18 @@ def test_two_processes_match_one_within_seed_noise(tiny, tmp_path):
     two = _test_psnr(tmp_path / "two")
     noise = abs(one[0] - one[1])
     assert abs(two - one[0]) <= max(3 * noise, 1.5), (two, one)
+
+
+def test_one_rank_group_runs_the_data_parallel_path(tiny, tmp_path):
+    """bench/one_rank_group.py (how the GPU machine checks NCCL with one card): ``dars train`` inside a one-rank
+    process group takes the data-parallel path (gloo here) and writes a run; NCCL without CUDA is refused."""
+    cmd = [sys.executable, str(ROOT / "bench" / "one_rank_group.py"), "--backend", "gloo", "--port", "29533", "train",
+           str(tiny), "--out", str(tmp_path / "r"), "--steps", "3", "--batch-rays", "64", "--threads", "1"]
+    r = subprocess.run(cmd, cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "data-parallel: 1 processes (gloo)" in r.stdout + r.stderr and "one-rank group: gloo rc 0" in r.stdout
+    assert load_run(tmp_path / "r", with_weights=False).step == 3
+    if not torch.cuda.is_available():
+        r = subprocess.run(cmd[:2] + ["train", str(tiny)], cwd=ROOT, env=_env(), capture_output=True, text=True,
+                           timeout=120)
+        assert r.returncode == 2 and "NCCL needs CUDA" in r.stderr
