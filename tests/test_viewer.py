@@ -255,6 +255,17 @@ def test_occlusion_channel_scales_the_lit_colour(gl, flat_cube_glb, tmp_path):
     bright = full > 0.05
     ratio = dim[bright] / full[bright]
     assert bright.sum() > 1000 and abs(np.median(ratio) - 128 / 255) < 0.01, np.median(ratio)
+    # a GLB whose SH is light_scale x the run's: its sky shows the run's radiance (the SH / light_scale)
+    scaled = textured_cube(tmp_path / "scaled.glb", pattern=False, extras={"light_scale": 2.0}, occlusion=0.5)
+    plain = textured_cube(tmp_path / "plain.glb", pattern=False, sh=CUBE_SH / 2.0)
+    with OffscreenPreview(scaled, ctx=gl) as view:
+        a = view.render(cam, PreviewConfig(background="sh"))
+    with OffscreenPreview(plain, ctx=gl) as view:
+        b = view.render(cam, PreviewConfig(background="sh"))
+    sky = ~a.mask
+    assert sky.mean() > 0.3 and np.abs(a.image.astype(int) - b.image.astype(int))[sky].max() <= 1
+    # and the mesh, lit by the SH x 2 x occlusion 0.5, looks as the plain GLB's (SH / 2, occlusion 1)
+    assert np.abs(a.image.astype(int) - b.image.astype(int))[a.mask & b.mask].max() <= 2
 
 
 def test_normal_map_decodes_to_the_baked_field_normal(gl, tmp_path):

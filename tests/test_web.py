@@ -194,14 +194,14 @@ def test_page_renders_in_headless_chromium_like_dars_view(page, serve, tmp_path)
 def test_page_draws_the_backdrop_like_dars_view(serve, tmp_path):
     """A GLB with a backdrop (toolkit.backdrop): the page draws it behind the model, blended with the SH radiance by
     its visibility, as ``dars view`` does (a half-float texture there, float32 here). Its occlusion channel (0.6)
-    darkens the model's SH lighting on the page as in ``dars view``."""
+    darkens the model's SH lighting and its light_scale (1.5) the sky's SH on the page as in ``dars view``."""
     from toolkit.backdrop import Backdrop
     from viewers.preview import PreviewConfig, render_preview
     from viewers.web import WebConfig, export_web, view_camera_from_web
 
     rng = np.random.default_rng(8)
     bd = Backdrop(rng.uniform(0, 1.2, (8, 16, 3)), rng.uniform(0, 1, (8, 16)))
-    glb = textured_cube(tmp_path / "cube.glb", extras={"backdrop": bd.to_json()}, occlusion=0.6)
+    glb = textured_cube(tmp_path / "cube.glb", extras={"backdrop": bd.to_json(), "light_scale": 1.5}, occlusion=0.6)
     try:
         site = export_web(glb, tmp_path / "site")
     except DarsError as e:
@@ -210,6 +210,7 @@ def test_page_draws_the_backdrop_like_dars_view(serve, tmp_path):
         raise
     light = json.loads(site.light_json.read_text())
     assert light["background"] == "backdrop" and light["backdrop"]["height"] == 8
+    assert light["sky_scale"] == pytest.approx(1 / 1.5)
     w, h = 320, 240
     report = _web_check(serve(site.out_dir) + "/index.html?dpr=1&noaa", tmp_path / "page.png", w, h)
     assert report["ready"] and not report["console_errors"] and not report["page_errors"], report

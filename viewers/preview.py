@@ -15,7 +15,9 @@ The fragment shader calls ``dars_shade_pbr``, generated from :mod:`toolkit.shadi
   ``semantics`` = :data:`toolkit.visualise.LABEL_COLOURS` per semantic primitive (unlabelled black). Background in
   ``lit`` mode: the GLB's backdrop where it has one and the light is its own (:mod:`toolkit.backdrop`: the field's
   colour where the mesh left training pixels uncovered, else its learned background, blended per direction with the
-  SH radiance by its visibility — ``visibility · backdrop + (1 − visibility) · SH``), else the SH environment's radiance along each view ray; a flat
+  SH radiance by its visibility — ``visibility · backdrop + (1 − visibility) · SH``), else the SH environment's
+  radiance along each view ray (divided by the GLB's ``extras.dars.light_scale``: its SH lights the mesh at that
+  multiple of the run's light, whose occlusion channel divides it back, :func:`viewers.lighting.light_scale`); a flat
   grey in the other modes. Alpha is 1 on the mesh, 0 elsewhere (the coverage mask of :class:`PreviewImage`).
 * No MSAA offscreen (one sample per pixel centre, like the field's renderer); the window asks for 4x MSAA.
 
@@ -274,10 +276,11 @@ class PreviewRenderer:
 
         from toolkit.visualise import LABEL_COLOURS
 
-        from .lighting import resolve_sh
+        from .lighting import light_scale, resolve_sh
 
         self.ctx = ctx
         self.asset = asset
+        self.sky_scale = 1.0 / light_scale(asset)  # the SH lights the mesh at light_scale x what its sky shows
         self._label_colours = LABEL_COLOURS
         self._objects: list = []
         # ---- geometry (glTF frame, as stored)
@@ -424,7 +427,7 @@ class PreviewRenderer:
         _set(bg, "u_exposure_scale", exposure_scale)
         _set(bg, "u_use_sh", use_sh)
         _set(bg, "u_colour", tuple(float(c) for c in cfg.background_colour))
-        _set(bg, "u_sh", sh_value)
+        _set(bg, "u_sh", [tuple(float(v) * self.sky_scale for v in row) for row in self.sh])
         _set(bg, "u_use_backdrop", use_backdrop)
         if use_backdrop:
             self.backdrop.use(0)

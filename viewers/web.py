@@ -15,8 +15,10 @@ from :func:`toolkit.sh.sh_to_threejs_lightprobe` (our radiance SH rotated into t
 ``sh_world`` — the SPEC coefficients [9, 3] (+z up, for reference); ``exposure`` (stops); ``background``
 (``"sh"``, ``"backdrop"`` or an sRGB triple); ``backdrop`` — the GLB's backdrop when drawn
 (:meth:`toolkit.backdrop.Backdrop.to_json`, uploaded as a half-float lat-long texture and blended with the SH
-radiance by its visibility, as ``dars view``); ``gltf_to_world`` (row-major 3×3: three's frame to the dars world,
-where the backdrop lives); ``camera`` (three/glTF frame: ``position``, ``target``, ``fov_y_deg``, ``near``, ``far``);
+radiance by its visibility, as ``dars view``); ``sky_scale`` — what the sky's SH radiance is multiplied by (1 / the
+GLB's ``extras.dars.light_scale``, :func:`viewers.lighting.light_scale`); ``gltf_to_world`` (row-major 3×3: three's
+frame to the dars world, where the backdrop lives); ``camera`` (three/glTF frame: ``position``, ``target``,
+``fov_y_deg``, ``near``, ``far``);
 ``xr_start`` (headset start: the camera's floor position and yaw); ``specular``; ``source``; ``three_version``.
 
 Shading on the page: three's ``MeshStandardMaterial`` from GLTFLoader keeps its texturing (sRGB base colour, ORM,
@@ -225,7 +227,7 @@ def export_web(glb: str | Path, out_dir: str | Path, sh: np.ndarray | None = Non
 
     from toolkit.sh import check_sh_coeffs
 
-    from .lighting import draws_backdrop, resolve_sh
+    from .lighting import draws_backdrop, light_scale, resolve_sh
     from .shading_glsl import glsl_shading_source
 
     if not np.isfinite(cfg.exposure):
@@ -269,6 +271,7 @@ def export_web(glb: str | Path, out_dir: str | Path, sh: np.ndarray | None = Non
         "sh_world": [[float(v) for v in row] for row in np.asarray(sh)],
         "exposure": float(cfg.exposure),
         "background": background if isinstance(background, str) else [float(c) for c in background],
+        "sky_scale": 1.0 / light_scale(asset),
         "backdrop": asset.backdrop.to_json() if background == "backdrop" else None,
         "gltf_to_world": [[float(v) for v in row] for row in WORLD_TO_GLTF.T],
         "specular": bool(cfg.specular),

@@ -172,7 +172,9 @@ async function main() {
   const probe = new THREE.LightProbe(sh, 1.0);
   scene.add(probe);
   if (cfg.background === 'sh' || cfg.background === 'backdrop') {
-    scene.add(makeSky(sh.coefficients, cfg.background === 'backdrop' ? cfg.backdrop : null, cfg.gltf_to_world));
+    // the GLB's SH lights the mesh at light_scale x the run's light (the occlusion divides it back): the sky is 1 / that
+    const sky = sh.coefficients.map((c) => c.clone().multiplyScalar(cfg.sky_scale ?? 1.0));
+    scene.add(makeSky(sky, cfg.background === 'backdrop' ? cfg.backdrop : null, cfg.gltf_to_world));
   }
   else scene.background = new THREE.Color().setRGB(...cfg.background, THREE.SRGBColorSpace);
 
