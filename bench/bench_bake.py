@@ -8,9 +8,11 @@ bake is written three times: without a backdrop (``views``: the preview draws th
 with the field's learned background map alone where the photos saw it (``background``), and with export-asset's
 backdrop of export-asset (``backdrop``: the field's rendered colour wherever the mesh leaves a training pixel uncovered,
 the background map elsewhere; :mod:`toolkit.backdrop`). These four have no light occlusion
-(``AssetConfig.light_occlusion=False``, the GLB of earlier versions); ``occlusion`` is export-asset's default: the
-backdrop GLB with the field's per-point light gain in its occlusion channel and the SH scaled to match. Each GLB's moderngl preview is scored against the test photos beside the field's own render
-(``bench_train._assets_depth_and_preview``: all test views, the field rendered once for both; the depth error where
+(``AssetConfig.light_occlusion=False``) and the field's point normals in the normal map (``normals_from="points"``):
+the GLB of earlier versions. ``occlusion``: the backdrop GLB with the field's per-point light gain in its occlusion
+channel and the SH scaled to match; ``view_normals`` (export-asset's default): that, with the normal map from the
+field's rendered normals at the training views. Each GLB's moderngl preview is scored against the test photos
+beside the field's own render (``bench_train._assets_depth_and_preview``: all test views, the field rendered once for both; the depth error where
 the scene has ground-truth depth; each GLB's albedo against the ground truth where the scene has it, beside the
 field's). Prints one row per run and bake, the gap to the field, and the mean and worst gap over the runs, and writes
 ``OUT/runK/compare.png`` per run to look at: photo | field | each GLB's preview on three test views. Also prints the
@@ -59,7 +61,7 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
     loaded = load_run(run)  # once: the mesh, the bake, the comparison image and the no-residual score
     field = asset_field(loaded)
     cfg = AssetConfig(view_rays=view_rays, depth_min_opacity=min_opacity, min_component=min_component,
-                      light_occlusion=False)
+                      light_occlusion=False, normals_from="points")
     t0 = time.perf_counter()
     mesh, stats = build_mesh(field, cfg)
     print(f"[bench_bake] {run}: mesh of {mesh.num_faces} faces ({stats['method']}) in "
@@ -97,7 +99,7 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
         export_gltf(uvmesh, textures, out / "occlusion" / "scene.glb", sh=sh, extras=extras)
         baked["occlusion"] = {"bake_seconds": time.perf_counter() - t0 + render_s, "views": bake.get("views"),
                               "light_scale": bake["light_scale"]}
-        # view_normals: the same with the normal map from the field's rendered normals (--normals-from views)
+        # view_normals (the default): the same with the normal map from the field's rendered normals
         t0 = time.perf_counter()
         nrm_cfg = replace(occ_cfg, normals_from="views")
         uvmesh, textures, bake = bake_mesh(mesh, field.material_fn, nrm_cfg, views=maps)

@@ -168,8 +168,9 @@ def test_render_view_maps_light_gain_follows_the_residual(tmp_path):
 
 
 def test_bake_mesh_takes_the_normal_map_from_the_views_when_asked():
-    """``normals_from="views"``: the normal map holds the mean of the rendered normals of the views that see a texel
-    (tilted 37° here), where the point query has none (the flat map); a texel no view sees keeps the mesh normal."""
+    """``normals_from="views"`` (the default): the normal map holds the mean of the rendered normals of the views that
+    see a texel (tilted 37° here); ``points``: the point query's, none here (the flat map); a texel no view sees keeps
+    the mesh normal."""
     from toolkit.asset import AssetConfig, bake_mesh
 
     m = _maps()
@@ -178,8 +179,8 @@ def test_bake_mesh_takes_the_normal_map_from_the_views_when_asked():
     _, tex, _ = bake_mesh(_floor_quad(), _blue, AssetConfig(texture=64, normals_from="views"), views=maps)
     nt = tex.normal[tex.mask].astype(np.float64) / 255.0 * 2.0 - 1.0
     assert np.allclose(nt[:, 2], 0.8, atol=0.02) and np.allclose(np.hypot(nt[:, 0], nt[:, 1]), 0.6, atol=0.02)
-    _, flat, _ = bake_mesh(_floor_quad(), _blue, AssetConfig(texture=64), views=maps)  # default: the points'
+    _, flat, _ = bake_mesh(_floor_quad(), _blue, AssetConfig(texture=64, normals_from="points"), views=maps)
     assert np.allclose(flat.normal[flat.mask].astype(np.float64) / 255.0 * 2.0 - 1.0, [0, 0, 1], atol=0.01)
     far = Mesh(_floor_quad().vertices + np.float32([20, 0, 0]), _floor_quad().faces, normals=_floor_quad().normals)
-    _, unseen, _ = bake_mesh(far, _blue, AssetConfig(texture=64, normals_from="views"), views=maps)
+    _, unseen, _ = bake_mesh(far, _blue, AssetConfig(texture=64), views=maps)  # views: the default
     assert np.allclose(unseen.normal[unseen.mask].astype(np.float64) / 255.0 * 2.0 - 1.0, [0, 0, 1], atol=0.01)

@@ -97,9 +97,10 @@ class AssetConfig:
     smaller pixel grid, :func:`depth_cameras`)."""
     view_tolerance: float = 0.1
     """``views``: a view sees a texel when the texel's depth is within this fraction of the rendered depth."""
-    normals_from: Literal["views", "points"] = "points"
-    """``views``: a texel's normal (the normal map) is the mean of the field's rendered normals over the views that
-    see it, like the albedo; ``points``: the field's normal at the texel's surface point."""
+    normals_from: Literal["views", "points"] = "views"
+    """``bake_from="views"``: ``views``: a texel's normal (the normal map) is the mean of the field's rendered normals
+    over the views that see it, like the albedo (the mesh normal where no view sees it and the field gives none);
+    ``points``: the field's normal at the texel's surface point (the GLB of earlier versions)."""
     light_occlusion: bool = True
     """``views``, for a field with a per-point light residual Δl(x): carry it in the GLB's occlusion channel. Each
     texel's occlusion is its light gain (how much Δl(x) brightens or darkens the field's shaded colour there, mean

@@ -74,9 +74,10 @@ def add_bake_options(q: argparse.ArgumentParser, backdrop: bool = True) -> None:
                         "texel's surface point (also used where no view sees a texel)")
     q.add_argument("--view-rays", type=number(int, min=64), default=300_000,
                    help="--bake-from views: at most this many rendered pixels over all training views")
-    q.add_argument("--normals-from", choices=("views", "points"), default="points",
-                   help="--bake-from views: views: the normal map is the mean of the field's rendered normals over "
-                        "the views that see a texel; points (default): the field's normal at the texel's surface point")
+    q.add_argument("--normals-from", choices=("views", "points"), default="views",
+                   help="--bake-from views: views (default): the normal map is the mean of the field's rendered "
+                        "normals over the views that see a texel; points: the field's normal at the texel's surface "
+                        "point")
     q.add_argument("--view-tolerance", type=number(float, above=0, max=0.5), default=0.1,
                    help="--bake-from views: a view sees a texel when its depth is within this fraction of the "
                         "rendered depth")
