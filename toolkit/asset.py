@@ -300,6 +300,14 @@ def _wants_backdrop(field, cfg: AssetConfig) -> bool:
     return cfg.backdrop and isinstance(field, FieldCallables) and field.background is not None
 
 
+def _takes(fn, keyword: str) -> bool:
+    """Whether the callable ``fn`` accepts ``keyword`` (False where its signature cannot be read)."""
+    try:
+        return keyword in inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+
+
 def view_maps(field: FieldCallables, cfg: AssetConfig = AssetConfig(), log=None):
     """The field's renders at its training cameras for the view-projected bake (``cfg.bake_from == "views"``) and
     the backdrop's visibility (``cfg.backdrop``), on one pixel grid of at most ``cfg.view_rays`` pixels; None when
@@ -313,7 +321,7 @@ def view_maps(field: FieldCallables, cfg: AssetConfig = AssetConfig(), log=None)
             log("[dars] --bake-from views: the field has no renderer or no training cameras; baking point queries")
         return None
     cams = depth_cameras(field.cameras, cfg.view_rays)
-    gain = cfg.light_occlusion and cfg.bake_from == "views" and "light_gain" in inspect.signature(views).parameters
+    gain = cfg.light_occlusion and cfg.bake_from == "views" and _takes(views, "light_gain")
     if log is not None:
         why = "the view-projected bake" if cfg.bake_from == "views" else "the backdrop's visibility"
         log(f"[dars] rendering the {len(cams)} training views at {int(cams.width[0])}x{int(cams.height[0])} for {why}"
@@ -356,7 +364,6 @@ def light_scale(views) -> float:
 
 def _with_occlusion(texel_fn, scale: float):
     """``texel_fn`` with its ``light_gain`` turned into ``occlusion`` = gain / ``scale`` clamped to [0, 1]."""
-
     import torch
 
     def fn(points, normals=None):
