@@ -87,27 +87,20 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
         export_gltf(uvmesh, textures, out / name / "scene.glb", sh=field.sh, extras=extras)
         baked[name] = {**baked["views"], "backdrop_texels_seen": float((backdrop.visibility > 0).mean()),
                        "backdrop_mean_visibility": float(backdrop.visibility.mean())}
-    # occlusion (the default): the backdrop GLB with the field's light gain in its occlusion channel, SH times s
+    # occlusion: the backdrop GLB with the field's light gain in its occlusion channel, SH times s; view_normals
+    # (export-asset's default): that, with the normal map from the field's rendered normals
     if "backdrop" in baked and "light_gain" in maps.values:
-        t0 = time.perf_counter()
         occ_cfg = replace(cfg, light_occlusion=True)
-        uvmesh, textures, bake = bake_mesh(mesh, field.material_fn, occ_cfg, views=maps)
-        sh = field.sh * bake["light_scale"]
-        backdrop = build_backdrop(field, maps, occ_cfg, uvmesh)
-        extras = Asset(mesh, uvmesh, textures, sh, {**stats, "bake": bake}, backdrop).gltf_extras()
-        (out / "occlusion").mkdir(parents=True, exist_ok=True)
-        export_gltf(uvmesh, textures, out / "occlusion" / "scene.glb", sh=sh, extras=extras)
-        baked["occlusion"] = {"bake_seconds": time.perf_counter() - t0 + render_s, "views": bake.get("views"),
-                              "light_scale": bake["light_scale"]}
-        # view_normals (the default): the same with the normal map from the field's rendered normals
-        t0 = time.perf_counter()
-        nrm_cfg = replace(occ_cfg, normals_from="views")
-        uvmesh, textures, bake = bake_mesh(mesh, field.material_fn, nrm_cfg, views=maps)
-        backdrop = build_backdrop(field, maps, nrm_cfg, uvmesh)
-        extras = Asset(mesh, uvmesh, textures, sh, {**stats, "bake": bake}, backdrop).gltf_extras()
-        (out / "view_normals").mkdir(parents=True, exist_ok=True)
-        export_gltf(uvmesh, textures, out / "view_normals" / "scene.glb", sh=sh, extras=extras)
-        baked["view_normals"] = {**baked["occlusion"], "bake_seconds": time.perf_counter() - t0 + render_s}
+        for name, glb_cfg in (("occlusion", occ_cfg), ("view_normals", replace(occ_cfg, normals_from="views"))):
+            t0 = time.perf_counter()
+            uvmesh, textures, bake = bake_mesh(mesh, field.material_fn, glb_cfg, views=maps)
+            sh = field.sh * bake["light_scale"]
+            backdrop = build_backdrop(field, maps, glb_cfg, uvmesh)
+            extras = Asset(mesh, uvmesh, textures, sh, {**stats, "bake": bake}, backdrop).gltf_extras()
+            (out / name).mkdir(parents=True, exist_ok=True)
+            export_gltf(uvmesh, textures, out / name / "scene.glb", sh=sh, extras=extras)
+            baked[name] = {"bake_seconds": time.perf_counter() - t0 + render_s, "views": bake.get("views"),
+                           "light_scale": bake["light_scale"]}
     rows = _assets_depth_and_preview(run, {name: out / name for name in baked}, threads, albedo_vs_gt=True)
     for name, extra in baked.items():
         rows[name].update(extra, gap_db=rows[name]["field_psnr"] - rows[name]["preview_psnr"])
@@ -125,20 +118,17 @@ def field_psnr_without_residual(run) -> float | None:
 
     from toolkit.io import linear_to_srgb
     from toolkit.metrics import psnr
+    from toolkit.train.run import light_residual_off
 
-    head = getattr(run.field, "light_head", None)
-    if head is None:
+    if getattr(run.field, "light_head", None) is None:
         return None
     sc = run.load_split("test")
     scores = []
-    run.field.light_head = None
-    try:
+    with light_residual_off(run):
         for i in range(len(sc)):
             with torch.no_grad():
                 o = run.render(sc.cameras, i)
             scores.append(float(psnr(linear_to_srgb(o.rgb.clamp(0, 1)).permute(2, 0, 1), sc.load_image(i))))
-    finally:
-        run.field.light_head = head
     return float(np.mean(scores))
 
 

@@ -10,6 +10,7 @@ Example:
 from __future__ import annotations
 
 import sys
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
@@ -29,7 +30,7 @@ from .data import prepare_data
 from .folder import find_run, read_checkpoint, read_run_config, run_scene_options
 
 __all__ = ["Run", "load_run", "render_views", "FieldCallables", "field_callables", "load_field_callables",
-           "run_field_callables", "render_view_maps"]
+           "run_field_callables", "render_view_maps", "light_gain_map", "light_residual_off"]
 
 
 @dataclass
@@ -298,20 +299,32 @@ def light_gain_map(shaded: torch.Tensor, shaded_global: torch.Tensor, opacity: t
     return gain.clamp(0.0, LIGHT_GAIN_MAX)
 
 
+@contextmanager
+def light_residual_off(run: Run):
+    """For the ``with`` block, the run's field without its light residual head (shaded by the global SH alone);
+    the head is put back after, whatever happens."""
+    head = run.field.light_head
+    run.field.light_head = None
+    try:
+        yield run
+    finally:
+        run.field.light_head = head
+
+
 def render_view_maps(run: Run, cameras: Cameras, progress: bool = True, light_gain: bool = False):
     """The run's own renders at ``cameras`` (one pixel grid), as :class:`toolkit.viewbake.ViewMaps`: composited
-    albedo (clamped to [0, 1]), roughness, metallic, normal, colour, depth and opacity, rendered with the run's settings (the DARS
-    sampler's W maps included when the run has them). With ``light_gain``, a field with a per-point light residual
-    Δl(x) is rendered a second time with the global SH alone, for the ``light_gain`` map (:func:`light_gain_map`:
-    what the GLB's occlusion channel carries, :func:`toolkit.asset.bake_mesh`)."""
+    albedo (clamped to [0, 1]), roughness, metallic, normal, colour, depth and opacity, rendered with the run's
+    settings (the DARS sampler's W maps included when the run has them). With ``light_gain``, a field with a
+    per-point light residual Δl(x) is rendered a second time with the global SH alone (:func:`light_residual_off`),
+    for the ``light_gain`` map (:func:`light_gain_map`: what the GLB's occlusion channel carries,
+    :func:`toolkit.asset.bake_mesh`)."""
     from tqdm import tqdm
 
     from ..viewbake import ViewMaps
 
     if run.cfg.render_sampler.dars and run.weight_maps is None:  # loaded without them (load_field_callables)
         run.weight_maps = _weight_maps(run.train_scene, run.cfg, run.meta)
-    head = getattr(run.field, "light_head", None)
-    with_gain = light_gain and head is not None and run.cfg.shading == "pbr"
+    with_gain = light_gain and getattr(run.field, "light_head", None) is not None and run.cfg.shading == "pbr"
     keys = (*VIEW_MAP_KEYS, "depth", "opacity")
     maps: dict[str, list] = {k: [] for k in (*keys, *(("light_gain",) if with_gain else ()))}
     with torch.no_grad():
@@ -321,11 +334,8 @@ def render_view_maps(run: Run, cameras: Cameras, progress: bool = True, light_ga
             for k in keys:
                 maps[k].append(getattr(o, k).detach().float().cpu())
             if with_gain:
-                run.field.light_head = None
-                try:
+                with light_residual_off(run):
                     g = run.render(cameras, i)
-                finally:
-                    run.field.light_head = head
                 maps["light_gain"].append(light_gain_map(o.diffuse + o.specular, g.diffuse + g.specular,
                                                          o.opacity).float().cpu())
     stacked = {k: torch.stack(v) for k, v in maps.items()}
