@@ -85,6 +85,51 @@ def score(net, scene_path: Path, split: str = "test") -> dict:
     return out
 
 
+def _mean_worst(rs: list[dict]) -> dict | None:
+    """mean and worst mIoU (and metal IoU where scored) of score rows."""
+    v = [r["miou"] for r in rs]
+    if not v:
+        return None
+    out = {"mean": sum(v) / len(v), "worst": min(v), "scenes": len(v)}
+    m = [r["metal_iou"] for r in rs if r.get("metal_iou") is not None]
+    if m:
+        out.update(metal_iou_mean=sum(m) / len(m), metal_iou_worst=min(m))
+    return out
+
+
+def _print_scores(rows: list[tuple[str, dict]]) -> None:
+    from toolkit.scene import SEMANTIC_CLASSES
+
+    print(f"\n{'scene (test split, never trained on)':<40} {'mIoU':>6} {'metal IoU':>10}  "
+          + " ".join(f"{c[:7]:>7}" for c in SEMANTIC_CLASSES))
+    for name, r in rows:
+        m = r.get("metal_iou")
+        per = " ".join("      -" if r["per_class"].get(c) is None else f"{r['per_class'][c]:7.3f}" for c in SEMANTIC_CLASSES)
+        print(f"{name:<40} {r['miou']:6.3f} {('-' if m is None else f'{m:.3f}'):>10}  {per}")
+
+
+def _score_only(net, validation: list[Path], sample: Path) -> int:
+    """``--score-only``: per-scene scores, mean and worst over the validation galleries, the sample."""
+    scores = {"validation": [score(net, d) for d in validation if (d / "transforms_test.json").is_file()]}
+    if (sample / "transforms_test.json").is_file():
+        scores["sample"] = score(net, sample)
+    if not scores["validation"] and "sample" not in scores:
+        print("no scene to score: render the validation galleries (python samples/galleries.py --profile validation)",
+              file=sys.stderr)
+        return 2
+    rows = [(f"validation {Path(r['scene']).name}", r) for r in scores["validation"]]
+    if "sample" in scores:
+        rows.append(("sample (samples/gallery)", scores["sample"]))
+    _print_scores(rows)
+    summary = {"validation": _mean_worst(scores["validation"]), "sample": scores.get("sample", {}).get("miou")}
+    print(json.dumps(summary, indent=1))
+    out = REPO / "bench" / "out" / "segmenter_scores.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"scores": scores, "summary": summary}, indent=1) + "\n")
+    print(f"wrote {out}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--prior-dir", type=Path, default=CACHE / "prior", help="prior-profile galleries (training data)")
@@ -103,6 +148,9 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--init", type=Path, default=None, help="continue from this segmenter.pt")
     ap.add_argument("--save", type=Path, default=None, help="write the weights here and the card beside (.json)")
+    ap.add_argument("--score-only", action="store_true",
+                    help="train nothing: score the shipped segmenter (or --init) on the validation galleries and the "
+                         "sample (none of them in its training set)")
     args = ap.parse_args(argv)
 
     import torch
@@ -111,6 +159,8 @@ def main(argv=None) -> int:
                                  train_segmenter)
 
     torch.set_num_threads(args.threads)
+    if args.score_only:
+        return _score_only(load_segmenter(args.init), args.validation, args.sample)
     dirs = _gallery_dirs(args.prior_dir)
     if args.max_galleries:
         dirs = dirs[:args.max_galleries]
@@ -144,15 +194,7 @@ def main(argv=None) -> int:
     rows += [(f"validation {Path(r['scene']).name}", r) for r in scores["validation"]]
     if "sample" in scores:
         rows.append(("sample (samples/gallery)", scores["sample"]))
-    print(f"\n{'scene (test split, never trained on)':<40} {'mIoU':>6} {'metal IoU':>10}")
-    for name, r in rows:
-        m = r.get("metal_iou")
-        print(f"{name:<40} {r['miou']:6.3f} {('-' if m is None else f'{m:.3f}'):>10}")
-
-    def _mean_worst(rs):
-        v = [r["miou"] for r in rs]
-        return {"mean": sum(v) / len(v), "worst": min(v)} if v else None
-
+    _print_scores(rows)
     summary = {"prior_heldout": _mean_worst(scores["prior_heldout"]), "validation": _mean_worst(scores["validation"]),
                "sample": scores.get("sample", {}).get("miou")}
     print(json.dumps(summary, indent=1))

@@ -6,6 +6,8 @@
                           semantics, local light and the PBR-shaded colour (or the radiance of a NeRF run)
     DIR/segment.onnx      the scene's built-in segmenter (when ``priors/segment/segmenter.pt`` exists)
     DIR/light.onnx        the light-estimation network (when ``toolkit.lightnet`` and trained weights exist)
+    DIR/heads.onnx        only for a run trained with per-ray (``deferred``) shading: the heads and the shading on a
+                          ray's composited field feature (the field graph's ``feature`` output, Σ w h / Σ w)
     DIR/occupancy.npz     the occupancy grid: ``mask_bits`` (np.packbits of the R^3 occupied cells, x-major),
                           ``density`` float16 [R^3], ``resolution``, ``aabb`` [2, 3] (the scene box), ``step``,
                           ``threshold``, ``contraction`` (the cells cover contracted space [-2, 2]^3, else the box)
@@ -68,11 +70,14 @@ from .onnx_precision import make_fp16_variant, make_int8_variant
 from . import infer as _infer
 
 __all__ = ["FieldExportConfig", "OnnxModelsReport", "FieldOnnxModule", "export_field_onnx", "export_onnx_models",
-           "field_io_signature", "space_metadata", "PBR_OUTPUTS", "RADIANCE_OUTPUTS", "PRECISIONS"]
+           "field_io_signature", "heads_io_signature", "HeadsOnnxModule", "space_metadata", "PBR_OUTPUTS",
+           "RADIANCE_OUTPUTS", "HEADS_FILE", "PRECISIONS"]
 
 PBR_OUTPUTS = ("density", "normal", "albedo", "roughness", "metallic", "semantic_logits", "light", "colour",
-               "diffuse", "specular")
-RADIANCE_OUTPUTS = ("density", "normal", "semantic_logits", "radiance")
+               "diffuse", "specular", "feature")
+RADIANCE_OUTPUTS = ("density", "normal", "semantic_logits", "radiance", "feature")
+HEADS_FILE = "heads.onnx"
+"""The heads graph of a run trained with ``deferred`` (per-ray) shading: :class:`HeadsOnnxModule`."""
 PRECISIONS = ("fp32", "fp16", "int8")
 
 CONVENTIONS = (
@@ -161,7 +166,9 @@ class FieldOnnxModule(nn.Module):
     ``pbr``: ``forward(points [N, 3], view_dirs [N, 3], sh [9, 3])`` returns :data:`PBR_OUTPUTS` —
     density [N] (1/m), normal [N, 3], albedo [N, 3] (linear), roughness [N], metallic [N], semantic_logits
     [N, C], light [N, 9, 3] (l_env + Δl(x)), colour / diffuse / specular [N, 3] (linear, shaded toward −view_dirs
-    under ``light``). ``radiance``: ``forward(points, view_dirs)`` returns :data:`RADIANCE_OUTPUTS`.
+    under ``light``), feature [N, D] (the shared field feature h the heads read). ``radiance``: ``forward(points,
+    view_dirs)`` returns :data:`RADIANCE_OUTPUTS`. A renderer that asks ONNX Runtime for ``density`` and
+    ``feature`` only runs the geometry part of the graph (a deferred run's samples, :class:`HeadsOnnxModule`).
     """
 
     def __init__(self, fld: DarsField, shading: Literal["pbr", "radiance"] = "pbr",
@@ -174,25 +181,56 @@ class FieldOnnxModule(nn.Module):
         self.shading_cfg = shading_cfg
 
     def forward(self, points: torch.Tensor, view_dirs: torch.Tensor, sh: torch.Tensor | None = None):
-        if self.shading == "radiance":
-            o = self.field(points, view_dirs, None, "radiance")
-            return o.density, o.normal, o.semantic_logits, o.radiance
-        o = self.field(points, view_dirs, sh, "pbr")
-        s = shade_pbr(o.albedo, o.roughness, o.metallic, o.normal, -view_dirs, o.light, self.shading_cfg)
-        return (o.density, o.normal, o.albedo, o.roughness, o.metallic, o.semantic_logits, o.light, s.colour,
-                s.diffuse, s.specular)
+        density, h = self.field.geometry_features(points)
+        return (density, *_head_outputs(self.field, h, view_dirs, sh, self.shading, self.shading_cfg), h)
 
 
-def field_io_signature(shading: str, n_classes: int) -> tuple[dict, dict]:
-    """(inputs, outputs) ``{name: shape}`` of the field graph (``"N"`` = dynamic batch)."""
+def _head_outputs(fld: DarsField, h: torch.Tensor, view_dirs: torch.Tensor, sh: torch.Tensor | None, shading: str,
+                  shading_cfg: ShadingConfig) -> tuple:
+    """The heads (and for ``pbr`` the shading) on features ``h`` [N, D]: the outputs of :data:`PBR_OUTPUTS` /
+    :data:`RADIANCE_OUTPUTS` between ``density`` and ``feature``."""
+    if shading == "radiance":
+        o = fld.heads(h, view_dirs, None, "radiance")
+        return o.normal, o.semantic_logits, o.radiance
+    o = fld.heads(h, view_dirs, sh, "pbr")
+    s = shade_pbr(o.albedo, o.roughness, o.metallic, o.normal, -view_dirs, o.light, shading_cfg)
+    return o.normal, o.albedo, o.roughness, o.metallic, o.semantic_logits, o.light, s.colour, s.diffuse, s.specular
+
+
+class HeadsOnnxModule(FieldOnnxModule):
+    """The heads graph of a run trained with per-ray (``deferred``) shading: the heads and the PBR shading on a
+    ray's composited feature h̄ = Σ w h / Σ w, as :func:`toolkit.pipeline.render_rays` shades such a run.
+
+    ``forward(feature [R, D], view_dirs [R, 3], sh [9, 3])`` (``radiance``: without ``sh``) returns the outputs of
+    :data:`PBR_OUTPUTS` (:data:`RADIANCE_OUTPUTS`) without ``density`` and ``feature``."""
+
+    def forward(self, feature: torch.Tensor, view_dirs: torch.Tensor, sh: torch.Tensor | None = None):
+        return _head_outputs(self.field, feature, view_dirs, sh, self.shading, self.shading_cfg)
+
+
+def field_io_signature(shading: str, n_classes: int, feature_dim: int | None = None) -> tuple[dict, dict]:
+    """(inputs, outputs) ``{name: shape}`` of the field graph (``"N"`` = dynamic batch; ``feature_dim`` D of the
+    ``feature`` output, ``"D"`` when not given)."""
     inputs = {"points": ["N", 3], "view_dirs": ["N", 3]}
+    d = "D" if feature_dim is None else int(feature_dim)
     if shading == "pbr":
         inputs["sh"] = [9, 3]
         outputs = {"density": ["N"], "normal": ["N", 3], "albedo": ["N", 3], "roughness": ["N"],
                    "metallic": ["N"], "semantic_logits": ["N", n_classes], "light": ["N", 9, 3], "colour": ["N", 3],
-                   "diffuse": ["N", 3], "specular": ["N", 3]}
+                   "diffuse": ["N", 3], "specular": ["N", 3], "feature": ["N", d]}
     else:
-        outputs = {"density": ["N"], "normal": ["N", 3], "semantic_logits": ["N", n_classes], "radiance": ["N", 3]}
+        outputs = {"density": ["N"], "normal": ["N", 3], "semantic_logits": ["N", n_classes], "radiance": ["N", 3],
+                   "feature": ["N", d]}
+    return inputs, outputs
+
+
+def heads_io_signature(shading: str, n_classes: int, feature_dim: int) -> tuple[dict, dict]:
+    """(inputs, outputs) ``{name: shape}`` of the heads graph (:class:`HeadsOnnxModule`; ``"R"`` = rays)."""
+    ins, outs = field_io_signature(shading, n_classes, feature_dim)
+    inputs = {"feature": ["R", int(feature_dim)], "view_dirs": ["R", 3]}
+    if "sh" in ins:
+        inputs["sh"] = [9, 3]
+    outputs = {k: ["R", *v[1:]] for k, v in outs.items() if k not in ("density", "feature")}
     return inputs, outputs
 
 
@@ -282,7 +320,7 @@ def export_field_onnx(fld: DarsField, path: str | os.PathLike, l_env: torch.Tens
         :class:`export.onnx.OnnxExportReport`.
     """
     module = FieldOnnxModule(fld, shading).eval()
-    ins, outs = field_io_signature(shading, fld.cfg.n_classes)
+    ins, outs = field_io_signature(shading, fld.cfg.n_classes, fld.feature_dim)
     pts, dirs = _random_inputs(fld.aabb.detach().cpu(), 64, seed=1, far_radius=_far_radius(fld))
     example = (pts, dirs)
     if shading == "pbr":
@@ -454,8 +492,9 @@ def _parity_scene(run, cfg: FieldExportConfig):
     return sc, split
 
 
-def _real_inputs(run, sc, index: int, n_rays: int) -> dict[str, torch.Tensor]:
-    """The samples the run's render sampler takes along ``n_rays`` rays of a view (DARS off), as field inputs."""
+def _real_inputs(run, sc, index: int, n_rays: int, composited: bool = False) -> dict[str, torch.Tensor]:
+    """The samples the run's render sampler takes along ``n_rays`` rays of a view (DARS off), as field inputs; with
+    ``composited``, those rays' composited features h̄ = Σ w h / Σ w and directions instead, as heads inputs."""
     from toolkit.pipeline import RenderInputs, render_rays
     from toolkit.scene import generate_rays
 
@@ -468,15 +507,23 @@ def _real_inputs(run, sc, index: int, n_rays: int) -> dict[str, torch.Tensor]:
     sub = rays[pick]
     sampler = replace(run.cfg.render_sampler, dars=False, perturb=False)
     with torch.no_grad(), _TorchHashGrid(run.field):
-        r = render_rays(run.field, sub, run.render_config(sampler=sampler, deferred=False),
+        r = render_rays(run.field, sub, run.render_config(sampler=sampler, deferred=composited),
                         RenderInputs(run.occupancy, run.l_env, run.background))
+        if composited:
+            from toolkit.render import accumulate_along_rays
+
+            n = len(sub)
+            hbar = accumulate_along_rays(r.weights, r.sample_features, r.sample_ray_indices, n)
+            return {"feature": (hbar / r.opacity[:, None].clamp_min(1e-6)).detach(), "view_dirs": sub.directions}
     return {"points": r.sample_points.detach(), "view_dirs": sub.directions[r.sample_ray_indices].detach()}
 
 
 def _torch_render(run, sc, index: int, dars: bool) -> tuple[np.ndarray, dict, float]:
+    """The torch reference of the device renderer: the run's render sampler (DARS along-ray density only with
+    ``dars``), shaded where the run shades (per sample, or per ray for a ``deferred`` run)."""
     sampler = run.cfg.render_sampler if dars else replace(run.cfg.render_sampler, dars=False)
     t0 = time.perf_counter()
-    outs = run.render(sc.cameras, index, sampler=sampler, deferred=False).as_dict()
+    outs = run.render(sc.cameras, index, sampler=sampler, deferred=bool(run.cfg.deferred)).as_dict()
     return outs["rgb"].cpu().numpy(), outs, time.perf_counter() - t0
 
 
@@ -506,12 +553,9 @@ def _render_parity(run, sc, split: str, out: Path, cfg: FieldExportConfig, threa
            "frac_pixels_over_1e-4": {k: float((d.reshape(d.shape[0], d.shape[1], -1) > 1e-4).any(-1).mean())
                                      for k, d in diffs.items()},
            "seconds_onnx": round(t_onnx, 3), "seconds_torch": round(t_torch, 3), "threads": threads,
-           "torch_reference": "render_image(deferred=False, dars=None)"}
+           "torch_reference": f"render_image(deferred={bool(run.cfg.deferred)}, dars=None)"}
     if rs_cfg.dars and run.weight_maps is not None:
         rep["psnr_torch_dars"] = _srgb_psnr(_torch_render(run, sc, i, dars=True)[0], gt)
-    if run.cfg.deferred:
-        o = run.render(sc.cameras, i, sampler=replace(rs_cfg, dars=False), deferred=True)
-        rep["psnr_torch_deferred"] = _srgb_psnr(o.rgb.cpu().numpy(), gt)
     log(f"[export-onnx] PSNR onnx {p_onnx:.3f} dB, torch {p_torch:.3f} dB (delta {abs(p_onnx - p_torch):.4f})")
     if not abs(p_onnx - p_torch) <= cfg.psnr_tol:
         raise OnnxParityError(f"{out}: the ONNX render of {split}:{i} has PSNR {p_onnx:.3f} dB, torch "
@@ -529,7 +573,7 @@ def _clear_previous_bundle(out: Path) -> None:
     except (OSError, ValueError):
         is_bundle = False
     if is_bundle:
-        for name in ("metadata.json", "field.onnx", "field_fp16.onnx", "field_int8.onnx", "segment.onnx",
+        for name in ("metadata.json", "field.onnx", "field_fp16.onnx", "field_int8.onnx", HEADS_FILE, "segment.onnx",
                      "light.onnx", "occupancy.npz", "background.npz"):
             (out / name).unlink(missing_ok=True)
 
@@ -579,7 +623,7 @@ def export_onnx_models(run_dir: str | os.PathLike, out_dir: str | os.PathLike, o
     threads = cfg.threads or torch.get_num_threads()
     fld, shading = run.field, run.cfg.shading
     aabb = run.train_scene.aabb.detach().cpu().float()
-    ins, outs_sig = field_io_signature(shading, fld.cfg.n_classes)
+    ins, outs_sig = field_io_signature(shading, fld.cfg.n_classes, fld.feature_dim)
     out_names = list(outs_sig)
     l_env = run.l_env.detach().cpu().float().reshape(9, 3)
     meta_props = {
@@ -637,6 +681,10 @@ def export_onnx_models(run_dir: str | os.PathLike, out_dir: str | os.PathLike, o
         raise OnnxParityError(f"{out / 'field.onnx'}: ONNX Runtime differs from torch beyond tol {cfg.tol:g}: {over} "
                               f"(random: {ra}; real: {ea})", max(over.values()), out / "field.onnx")
     log(f"[export-onnx] field parity: random max {max(ra.values()):.3g}, real max {max(ea.values()):.3g}")
+    heads_meta = None
+    if run.cfg.deferred:  # the run shades once per ray: the device renderer composites features, then the heads
+        heads_meta, field_rep["heads"] = _export_heads(run, sc, out, opset, meta_props, cfg, threads)
+        log(f"[export-onnx] {HEADS_FILE} parity: real max {field_rep['heads']['max_abs_err']:.3g}")
     # ---------------------------------------------------------------- bundle files
     _write_occupancy(out / "occupancy.npz", run.occupancy)
     bg_info = _write_background(out / "background.npz", run.background)
@@ -652,6 +700,7 @@ def export_onnx_models(run_dir: str | os.PathLike, out_dir: str | os.PathLike, o
                            "note": "the device renderer uses the hierarchical proposal only; DARS along-ray "
                                    "density needs the training W maps (render-time prior)"},
         "deferred_in_run": bool(run.cfg.deferred),
+        "heads": heads_meta,
         "field": {"file": "field.onnx", "inputs": ins, "outputs": outs_sig,
                   "encoding": fld.cfg.encoding, "hash_grid": meta_props["dars.hash_grid"]},
         "occupancy": {"file": "occupancy.npz", "resolution": run.occupancy.resolution,
@@ -689,6 +738,34 @@ def export_onnx_models(run_dir: str | os.PathLike, out_dir: str | os.PathLike, o
     meta_path.write_text(json.dumps(metadata, indent=2, default=_json_default))
     report.files["metadata.json"] = meta_path.stat().st_size
     return report
+
+
+def _export_heads(run, sc, out: Path, opset: int, meta_props: dict, cfg: FieldExportConfig, threads: int
+                  ) -> tuple[dict, dict]:
+    """``heads.onnx`` of a ``deferred`` run, checked against torch on the composited features of a test view's
+    rays (ONNX Runtime vs torch per output, ``cfg.tol``). Returns (metadata entry, parity report)."""
+    fld, shading = run.field, run.cfg.shading
+    ins, outs = heads_io_signature(shading, fld.cfg.n_classes, fld.feature_dim)
+    module = HeadsOnnxModule(fld, shading).eval()
+    real = _real_inputs(run, sc, cfg.parity_index, cfg.n_real_rays, composited=True)
+    l_env = run.l_env.detach().cpu().float().reshape(9, 3)
+    if shading == "pbr":
+        real["sh"] = l_env
+    example = tuple(v[:64] if k != "sh" else v for k, v in real.items())
+    axes = {k: {0: "R"} for k in ["feature", "view_dirs", *outs]}
+    props = {**meta_props, "dars.kind": "heads", "dars.inputs": json.dumps(ins), "dars.outputs": json.dumps(outs)}
+    export_onnx(module, example, out / HEADS_FILE, list(ins), list(outs), dynamic_batch=False, opset=opset,
+                metadata=props, dynamic_axes=axes, tol=cfg.tol, random_batch=0)
+    sess = _infer.make_session(out / HEADS_FILE, threads)
+    err, _ = _compare(module, sess, real, list(outs))
+    bad = {k: v for k, v in err.items() if not v <= cfg.tol}
+    if bad:
+        raise OnnxParityError(f"{out / HEADS_FILE}: ONNX Runtime differs from torch beyond tol {cfg.tol:g}: {bad}",
+                              max(bad.values()), out / HEADS_FILE)
+    meta = {"file": HEADS_FILE, "inputs": ins, "outputs": outs,
+            "use": "deferred shading: composite the field graph's 'feature' along each ray (Σ w h / Σ w), then run "
+                   "this graph once per ray"}
+    return meta, {"real": err, "max_abs_err": max(err.values()), "n_real": int(real["feature"].shape[0])}
 
 
 def _json_default(o):

@@ -6,8 +6,9 @@ variants ``field_fp16.onnx`` / ``field_int8.onnx``) and renders novel views with
 numpy, onnxruntime and (for photos) Pillow are imported: ``import export.infer`` never loads torch. Cameras are
 :class:`toolkit.pinhole.PinholeCamera` (numpy; the viewers' camera type too).
 
-The renderer is the algorithm of :func:`toolkit.pipeline.render_image` with the run's ``render_sampler`` and
-``deferred=False``, re-implemented in numpy with the same float32 arithmetic:
+The renderer is the algorithm of :func:`toolkit.pipeline.render_image` with the run's ``render_sampler`` and the
+run's shading (per sample, or once per ray for a run trained with ``deferred`` shading, whose bundle has
+``heads.onnx``), re-implemented in numpy with the same float32 arithmetic:
 
 1. rays through pixel centres ``(u + 0.5, v + 0.5)`` (OpenGL camera: x right, y up, looking down −z), clipped
    by a slab test (entry clamped to 0.05 m) to the scene box — or, for a *contracted* (unbounded) field, to the
@@ -22,7 +23,10 @@ The renderer is the algorithm of :func:`toolkit.pipeline.render_image` with the 
 4. the union, sorted along each ray with Voronoi intervals (at most one coarse step; contracted: at most the
    sample's own stratum, whose lengths differ), composited as packed samples: ``α = 1 − exp(−σ δ)``,
    ``w = T α``; per-sample PBR-shaded colour (the graph's ``colour``) summed with ``w``, plus ``(1 − opacity)``
-   × the background (``background.npz``: constant colour or lat-long map).
+   × the background (``background.npz``: constant colour or lat-long map). A ``deferred`` run asks the field
+   graph only for ``density`` and ``feature`` (ONNX Runtime runs the geometry part), composites the feature
+   h̄ = Σ w h / Σ w per ray and runs ``heads.onnx`` once per ray: rgb = opacity · colour + (1 − opacity) × the
+   background.
 
 The field graph itself contracts its input points and rescales σ (density per contracted length beyond the
 box, zero beyond the far radius), so ``field.onnx`` is queried with world points in both cases. The space a
@@ -229,8 +233,11 @@ class FieldModel:
         background: ``{"mode": ..., "colour": [3] or "env_map": [h, w, 3]}`` linear radiance.
     """
 
-    def __init__(self, path: Path, metadata: dict, session, precision: str, occupancy: dict, background: dict):
+    def __init__(self, path: Path, metadata: dict, session, precision: str, occupancy: dict, background: dict,
+                 heads_session=None):
         self.path = path
+        self.heads_session = heads_session
+        """``heads.onnx`` of a run shaded once per ray (``deferred``), else None."""
         self.metadata = metadata
         self.session = session
         self.precision = precision
@@ -251,8 +258,13 @@ class FieldModel:
                                        near_min=float(metadata.get("near_min", 0.05)))
 
     # ------------------------------------------------------------------ field
+    @property
+    def deferred(self) -> bool:
+        """The run shades once per ray: the renderer composites the field's ``feature`` and runs ``heads.onnx``."""
+        return self.heads_session is not None
+
     def query(self, points: np.ndarray, view_dirs: np.ndarray, sh: np.ndarray | None = None,
-              chunk: int = 65536) -> dict[str, np.ndarray]:
+              chunk: int = 65536, outputs: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         """Run the field graph on points (chunked).
 
         Args:
@@ -260,6 +272,7 @@ class FieldModel:
             view_dirs: float [N, 3] unit ray directions (camera -> point).
             sh: float [9, 3] global SH light (default: the run's ``l_env``); ignored by a ``radiance`` field.
             chunk: points per ONNX Runtime call.
+            outputs: the outputs to compute (default: all); ONNX Runtime runs only the part of the graph they need.
 
         Returns:
             ``{output name: float32 array [N, ...]}`` (see ``metadata["field"]["outputs"]``).
@@ -268,21 +281,16 @@ class FieldModel:
         view_dirs = np.ascontiguousarray(view_dirs, np.float32)
         if points.ndim != 2 or points.shape[1] != 3 or view_dirs.shape != points.shape:
             raise InferError(f"points {list(points.shape)} and view_dirs {list(view_dirs.shape)} must both be [N, 3]")
-        n = points.shape[0]
-        if n == 0:
-            shapes = self.metadata["field"]["outputs"]
-            return {k: np.zeros([0] + [int(d) for d in shapes[k][1:]], np.float32) for k in self.output_names}
-        feed_sh = np.ascontiguousarray(self.sh if sh is None else sh, np.float32)
-        if feed_sh.shape != (9, 3):
-            raise InferError(f"sh must be [9, 3] (SPEC order, linear radiance), got {list(feed_sh.shape)}")
-        parts: dict[str, list[np.ndarray]] = {k: [] for k in self.output_names}
-        for i in range(0, n, chunk):
-            feed = {"points": points[i:i + chunk], "view_dirs": view_dirs[i:i + chunk]}
-            if "sh" in self.input_names:
-                feed["sh"] = feed_sh
-            for k, v in zip(self.output_names, self.session.run(None, feed)):
-                parts[k].append(v)
-        return {k: np.concatenate(v).astype(np.float32, copy=False) for k, v in parts.items()}
+        return _run_chunked(self.session, self.metadata["field"]["outputs"], {"points": points, "view_dirs": view_dirs},
+                            self.sh if sh is None else sh, chunk, outputs)
+
+    def query_heads(self, features: np.ndarray, view_dirs: np.ndarray, sh: np.ndarray | None = None,
+                    chunk: int = 65536) -> dict[str, np.ndarray]:
+        """Run ``heads.onnx`` (a ``deferred`` run) on composited ray features [R, D] and ray directions [R, 3]."""
+        if self.heads_session is None:
+            raise InferError(f"{self.path}: this bundle has no heads.onnx (the run shades per sample)")
+        return _run_chunked(self.heads_session, self.metadata["heads"]["outputs"],
+                            {"feature": features, "view_dirs": view_dirs}, self.sh if sh is None else sh, chunk)
 
     # ------------------------------------------------------------------ occupancy and background
     def occupied(self, points: np.ndarray) -> np.ndarray:
@@ -324,6 +332,32 @@ class FieldModel:
         flat = env.reshape(-1, 3)
         return (flat[r0 * w + c0] * ((1 - fr) * (1 - fc)) + flat[r0 * w + c1] * ((1 - fr) * fc)
                 + flat[r1 * w + c0] * (fr * (1 - fc)) + flat[r1 * w + c1] * (fr * fc)).astype(np.float32)
+
+
+def _run_chunked(session, shapes: dict, inputs: dict[str, np.ndarray], sh: np.ndarray, chunk: int,
+                 outputs: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+    """Run an ONNX session on row-chunked ``inputs`` (float [N, ...] each, the same N), feeding ``sh`` [9, 3] when
+    the graph takes it. ``shapes``: the graph's output shapes (``metadata.json``), for an empty batch."""
+    names = [o.name for o in session.get_outputs()] if outputs is None else list(outputs)
+    inputs = {k: np.ascontiguousarray(v, np.float32) for k, v in inputs.items()}
+    n = next(iter(inputs.values())).shape[0]
+    bad = {k: list(v.shape) for k, v in inputs.items() if v.ndim != 2 or v.shape[0] != n}
+    if bad:
+        raise InferError(f"inputs {bad} must be 2-D with one row each")
+    if n == 0:
+        return {k: np.zeros([0] + [int(d) for d in shapes[k][1:]], np.float32) for k in names}
+    feed_sh = np.ascontiguousarray(sh, np.float32)
+    if feed_sh.shape != (9, 3):
+        raise InferError(f"sh must be [9, 3] (SPEC order, linear radiance), got {list(feed_sh.shape)}")
+    takes_sh = any(i.name == "sh" for i in session.get_inputs())
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in names}
+    for i in range(0, n, chunk):
+        feed = {k: v[i:i + chunk] for k, v in inputs.items()}
+        if takes_sh:
+            feed["sh"] = feed_sh
+        for k, v in zip(names, session.run(names, feed)):
+            parts[k].append(v)
+    return {k: np.concatenate(v).astype(np.float32, copy=False) for k, v in parts.items()}
 
 
 def _check_dir(path: Path, needed: Sequence[str]) -> None:
@@ -393,7 +427,12 @@ def load_model(path: str | os.PathLike, precision: str = "fp32", threads: int | 
         raise InferError(f"{path / current} is truncated or corrupt ({type(e).__name__}: {str(e)[:160]}); "
                          f"re-run `dars export-onnx RUN --out {path}`") from e
     session = make_session(path / FIELD_FILES[precision], threads)
-    return FieldModel(path, metadata, session, precision, occupancy, background)
+    heads = None
+    if metadata.get("heads"):  # a run shaded once per ray; the heads graph stays fp32 in every variant
+        name = metadata["heads"].get("file", "heads.onnx")
+        _check_dir(path, [name])
+        heads = make_session(path / name, threads)
+    return FieldModel(path, metadata, session, precision, occupancy, background, heads)
 
 
 def _load_npz(path: Path):
@@ -641,7 +680,9 @@ def render_rays(model: FieldModel, origins: np.ndarray, directions: np.ndarray, 
     ray_c, k_c = np.nonzero(keep)
     t0c, t1c = starts[ray_c, k_c], ends[ray_c, k_c]
     tmid_c = f32(0.5) * (t0c + t1c)
-    out_c = model.query(origins[ray_c] + tmid_c[:, None] * directions[ray_c], directions[ray_c], sh)
+    per_ray = model.deferred  # a run shaded once per ray: density and feature at the samples, heads per ray
+    want = ("density", "feature") if per_ray else None
+    out_c = model.query(origins[ray_c] + tmid_c[:, None] * directions[ray_c], directions[ray_c], sh, outputs=want)
     counts = np.zeros(R, np.int64)
     if st.n_fine > 0:
         w_c = render_weights(out_c["density"], t1c - t0c, ray_c, R)
@@ -651,7 +692,7 @@ def render_rays(model: FieldModel, origins: np.ndarray, directions: np.ndarray, 
         t_f, ray_f, k_f = _sample_fine(edges, pdf, counts, return_strata=True)
     else:
         t_f, ray_f, k_f = np.zeros(0, f32), np.zeros(0, np.int64), np.zeros(0, np.int64)
-    out_f = model.query(origins[ray_f] + t_f[:, None] * directions[ray_f], directions[ray_f], sh)
+    out_f = model.query(origins[ray_f] + t_f[:, None] * directions[ray_f], directions[ray_f], sh, outputs=want)
     max_delta = (np.maximum(far, near) - near) / f32(n)
     sample_delta = None
     if space.contraction:  # strata of unequal length: each sample spans at most its own stratum
@@ -664,6 +705,8 @@ def render_rays(model: FieldModel, origins: np.ndarray, directions: np.ndarray, 
     tm = f32(0.5) * (s0 + s1)
     depth = (_accumulate(weights, tm[:, None], ri, R)[:, 0] / safe[:, 0]) * z_scale
     bg = model.background_radiance(directions)
+    if per_ray:
+        return _shade_rays(model, outs["feature"], weights, ri, opacity, depth, directions, bg, sh)
     colour = outs["colour"] if model.shading == "pbr" else outs["radiance"]
     res = {"rgb": _accumulate(weights, colour, ri, R) + (f32(1.0) - opacity) * bg, "depth": depth,
            "opacity": opacity[:, 0]}
@@ -680,11 +723,31 @@ def render_rays(model: FieldModel, origins: np.ndarray, directions: np.ndarray, 
     return {k: v.astype(np.float32, copy=False) for k, v in res.items()}
 
 
+def _shade_rays(model: FieldModel, features: np.ndarray, weights: np.ndarray, ri: np.ndarray, opacity: np.ndarray,
+                depth: np.ndarray, directions: np.ndarray, bg: np.ndarray, sh: np.ndarray | None
+                ) -> dict[str, np.ndarray]:
+    """The outputs of :func:`render_rays` for a run shaded once per ray (``deferred``), as
+    :func:`toolkit.pipeline.render_rays` computes them: the heads on h̄ = Σ w h / Σ w, rgb = opacity · colour +
+    (1 − opacity) · background, diffuse and specular premultiplied by opacity."""
+    f32 = np.float32
+    R = directions.shape[0]
+    hbar = _accumulate(weights, features, ri, R) / np.maximum(opacity, f32(1e-6))
+    heads = model.query_heads(hbar, directions, sh)
+    colour = heads["colour"] if model.shading == "pbr" else heads["radiance"]
+    res = {"rgb": opacity * colour + (f32(1.0) - opacity) * bg, "depth": depth, "opacity": opacity[:, 0],
+           "normal": heads["normal"], "semantic_logits": heads["semantic_logits"]}
+    if model.shading == "pbr":
+        res.update(albedo=heads["albedo"], roughness=heads["roughness"], metallic=heads["metallic"],
+                   diffuse=opacity * heads["diffuse"], specular=opacity * heads["specular"])
+    res["samples"] = np.bincount(ri, minlength=R).astype(np.float32)
+    return {k: v.astype(np.float32, copy=False) for k, v in res.items()}
+
+
 def render_view(model: FieldModel, camera: PinholeCamera, settings: RenderSettings | None = None,
                 sh: np.ndarray | None = None, progress: Callable[[int, int], None] | None = None
                 ) -> dict[str, np.ndarray]:
     """Render every decomposed output of one camera (numpy + ONNX Runtime; the same algorithm as
-    :func:`toolkit.pipeline.render_image` with ``deferred=False`` and no DARS along-ray density).
+    :func:`toolkit.pipeline.render_image` with the run's shading and no DARS along-ray density).
 
     Args:
         model: from :func:`load_model`.

@@ -32,6 +32,7 @@ import pytest
 from synthetic import make_scene
 from toolkit.cli import main
 from toolkit.defaults import DARS_DEFAULT
+from toolkit.train import make_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -510,6 +511,7 @@ CASES += [Case(f"arg-{name}", argv, words) for name, argv, words in _ARGS]
 # --- 5. resume: the run continues as it was started -------------------------------------------------------------
 _OTHER_SAMPLER = "--no-dars" if DARS_DEFAULT else "--dars"  # the copied run was trained with the default sampler
 _RESUME = lambda *extra: (lambda c: ["train", *extra, "--resume", "--out", c.t / "r", "--steps", 4])  # noqa: E731
+_OTHER_SHADE = "samples" if make_config("fast").deferred else "rays"  # the copied run shades where the preset does
 CASES += [
     Case("resume-other-scene", lambda c: ["train", c.t / "s2", "--resume", "--out", c.t / "r", "--steps", 4],
          ("s2", "scene", "another --out"), _both(_copy_run, lambda c: shutil.copytree(c.w.scene, c.t / "s2"))),
@@ -518,6 +520,8 @@ CASES += [
     Case("resume-ablation-switch", _RESUME(_OTHER_SAMPLER), (_OTHER_SAMPLER,), _copy_run),  # not the run's sampler
     Case("resume-other-priors", _RESUME("--priors", "."), ("--priors",), _copy_run),
     Case("resume-other-light-residual", _RESUME("--light-residual", "off"), ("--light-residual off", "the run's: "),
+         _copy_run),
+    Case("resume-other-shade", _RESUME("--shade", _OTHER_SHADE), (f"--shade {_OTHER_SHADE}", "the run's: "),
          _copy_run),
     Case("resume-and-force", _RESUME("--force"), ("--resume", "--force"), _copy_run),
     Case("resume-no-checkpoint", lambda c: ["train", "--resume", "--out", c.t / "r", "--steps", 4],

@@ -66,6 +66,23 @@ def bounded_export(tmp_path_factory):
             "meta": json.loads((root / "onnx" / "metadata.json").read_text())}
 
 
+@pytest.fixture(scope="module")
+def deferred_export(tmp_path_factory):
+    """A run shaded once per ray (``deferred``, ``dars train --shade rays``) on the tiny synthetic scene, exported
+    with the render check (contracted: the scene is RGB)."""
+    from synthetic import make_scene
+    from toolkit.train import train
+
+    root = tmp_path_factory.mktemp("onnx_deferred")
+    scene = make_scene(root / "scene", n_train=8, n_test=2, size=24)
+    run = root / "run"
+    train(scene, run, small_config(steps=16, batch_rays=512, occupancy_resolution=16, occupancy_warmup=4,
+                                   deferred=True), progress_bar=False, log=lambda m: None)
+    rep = export_onnx_models(run, root / "onnx", precision=("fp32", "fp16"), cfg=FieldExportConfig(threads=1))
+    return {"run": run, "out": root / "onnx", "report": rep,
+            "meta": json.loads((root / "onnx" / "metadata.json").read_text())}
+
+
 def _assert_render_parity(r: dict, contracted: bool, view: str = "test:0") -> None:
     """The rendered-view bars, the same for contracted and bounded runs (see
     test_sample_test_view_within_005_db_of_torch) but one: the largest depth difference. At a pixel whose fine
@@ -150,6 +167,41 @@ def test_bounded_run_bundle_and_render_parity(bounded_export):
         for k, v in f[check].items():
             assert (f[f"{check}_scaled"][k] if k == "density" else v) <= 1e-4, (check, k, v)
     _assert_render_parity(bounded_export["report"].render, contracted=False)
+
+
+def test_deferred_run_bundle_renders_per_ray(deferred_export):
+    """A run shaded once per ray ships heads.onnx; the device renderer composites the field's feature and runs the
+    heads per ray, matching torch's deferred render with the same bars as the per-sample runs. A per-sample run's
+    bundle has no heads graph."""
+    from export.field_onnx import HEADS_FILE
+    from export.infer import load_model, render_view
+    from toolkit.pinhole import PinholeCamera
+    from toolkit.train import load_run
+
+    out, meta, rep = deferred_export["out"], deferred_export["meta"], deferred_export["report"]
+    assert meta["deferred_in_run"] is True and meta["heads"]["file"] == HEADS_FILE
+    heads = onnx.load(str(out / HEADS_FILE))
+    onnx.checker.check_model(heads, full_check=True)
+    assert [i.name for i in heads.graph.input] == ["feature", "view_dirs", "sh"]
+    assert "colour" in [o.name for o in heads.graph.output] and "density" not in [o.name for o in heads.graph.output]
+    assert rep.field["heads"]["max_abs_err"] <= 1e-4 and rep.field["heads"]["n_real"] > 0
+    assert "deferred=True" in rep.render["torch_reference"]
+    _assert_render_parity(rep.render, contracted=True)
+    m = load_model(out, threads=1)
+    assert m.deferred
+    run = load_run(deferred_export["run"], with_weights=False)
+    sc = run.load_split("test")
+    per_sample = run.render(sc.cameras, 0, deferred=False).rgb.numpy()
+    got = render_view(m, PinholeCamera.from_cameras(sc.cameras, 0))["rgb"]
+    ref = run.render(sc.cameras, 0).rgb.numpy()  # the run's own (deferred) render
+    assert np.abs(got - ref).max() < 1e-3 < np.abs(per_sample - ref).max()
+    assert rep.variants["fp16"]["status"] == "exported" and rep.variants["fp16"]["psnr_vs_fp32"] > 30.0
+
+
+def test_per_sample_bundle_has_no_heads_graph(bounded_export):
+    from export.field_onnx import HEADS_FILE
+
+    assert bounded_export["meta"]["heads"] is None and not (bounded_export["out"] / HEADS_FILE).exists()
 
 
 # ------------------------------------------------------------------------------------------------ parity

@@ -20,8 +20,8 @@ from pathlib import Path
 from .._checks import DarsError
 from ._common import COUNT, log, number, print_json, set_threads
 
-ONNX_FILES = ("metadata.json", "field.onnx", "field_fp16.onnx", "field_int8.onnx", "segment.onnx", "light.onnx",
-              "occupancy.npz", "background.npz")
+ONNX_FILES = ("metadata.json", "field.onnx", "field_fp16.onnx", "field_int8.onnx", "heads.onnx", "segment.onnx",
+              "light.onnx", "occupancy.npz", "background.npz")
 """What ``dars export-onnx`` writes (:func:`export.field_onnx.export_onnx_models`)."""
 PRECISIONS = ("fp32", "fp16", "int8")
 

@@ -79,6 +79,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="weight of the room-layout loss: rays through the photos' large textureless regions end on "
                         "the room's box, found by a photometric plane sweep before the first step (toolkit.layout; "
                         "default: 0.1 for a room, 0 for an object; 0 = off)")
+    q.add_argument("--shade", choices=["samples", "rays"], default=None,
+                   help="where the heads and the PBR shading run: at every sample, shaded colours composited "
+                        "(samples), or once per ray on the composited field feature (rays: fewer evaluations a step, "
+                        "so more steps in a --minutes budget); default: the preset's")
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
     q.add_argument("--albedo-supervision", action="store_true",
                    help="use the scene's ground-truth albedo maps in L_mat (eq. 20); makes albedo MAE circular")
@@ -155,6 +159,7 @@ _RESUME_OPTIONS = (
     ("--albedo-supervision", "albedo_supervision", lambda m: bool(m["config"].get("albedo_supervision")),
      lambda v: v or None),
     ("--batch-rays", "batch_rays", lambda m: m["config"].get("batch_rays"), lambda v: v or None),
+    ("--shade", "shade", lambda m: "rays" if m["config"].get("deferred") else "samples", lambda v: v),
     *((f"--{flag}", attr, (lambda m, k=key: m["config"].get("losses", {}).get(k) or 0.0),
        lambda v: None if v is None else float(v))
       for flag, attr, key in _LOSS_OPTIONS),
@@ -249,6 +254,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides["labels"] = args.labels
     if args.batch_rays:
         overrides["batch_rays"] = args.batch_rays
+    if args.shade is not None:
+        overrides["deferred"] = args.shade == "rays"
     if snapshots:
         overrides["snapshot_minutes"] = snapshots
     cfg = make_config(args.preset or "fast", **overrides)
