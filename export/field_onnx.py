@@ -167,8 +167,9 @@ class FieldOnnxModule(nn.Module):
     density [N] (1/m), normal [N, 3], albedo [N, 3] (linear), roughness [N], metallic [N], semantic_logits
     [N, C], light [N, 9, 3] (l_env + Δl(x)), colour / diffuse / specular [N, 3] (linear, shaded toward −view_dirs
     under ``light``), feature [N, D] (the shared field feature h the heads read). ``radiance``: ``forward(points,
-    view_dirs)`` returns :data:`RADIANCE_OUTPUTS`. A renderer that asks ONNX Runtime for ``density`` and
-    ``feature`` only runs the geometry part of the graph (a deferred run's samples, :class:`HeadsOnnxModule`).
+    view_dirs)`` returns :data:`RADIANCE_OUTPUTS`. A deferred run's renderer reads ``density`` and ``feature`` at
+    the samples and shades each ray with :class:`HeadsOnnxModule` (ONNX Runtime 1.31 still runs the whole graph
+    for that subset of outputs: measured the same time either way).
     """
 
     def __init__(self, fld: DarsField, shading: Literal["pbr", "radiance"] = "pbr",

@@ -24,7 +24,7 @@ run's shading (per sample, or once per ray for a run trained with ``deferred`` s
    sample's own stratum, whose lengths differ), composited as packed samples: ``α = 1 − exp(−σ δ)``,
    ``w = T α``; per-sample PBR-shaded colour (the graph's ``colour``) summed with ``w``, plus ``(1 − opacity)``
    × the background (``background.npz``: constant colour or lat-long map). A ``deferred`` run asks the field
-   graph only for ``density`` and ``feature`` (ONNX Runtime runs the geometry part), composites the feature
+   graph for ``density`` and ``feature`` only, composites the feature
    h̄ = Σ w h / Σ w per ray and runs ``heads.onnx`` once per ray: rgb = opacity · colour + (1 − opacity) × the
    background.
 
@@ -272,7 +272,7 @@ class FieldModel:
             view_dirs: float [N, 3] unit ray directions (camera -> point).
             sh: float [9, 3] global SH light (default: the run's ``l_env``); ignored by a ``radiance`` field.
             chunk: points per ONNX Runtime call.
-            outputs: the outputs to compute (default: all); ONNX Runtime runs only the part of the graph they need.
+            outputs: the outputs to return (default: all).
 
         Returns:
             ``{output name: float32 array [N, ...]}`` (see ``metadata["field"]["outputs"]``).
