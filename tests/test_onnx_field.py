@@ -51,8 +51,9 @@ def radiance_run(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def bounded_export(tmp_path_factory):
-    """A bounded (``scene_type="object"``: no contraction) PBR run on the tiny synthetic scene, a few steps,
-    exported with the render check."""
+    """A bounded (``scene_type="object"``: no contraction) PBR run shaded at every sample (``--shade samples``; the
+    fast preset's default shades once per ray) on the tiny synthetic scene, a few steps, exported with the render
+    check."""
     from synthetic import make_scene
     from toolkit.train import train
 
@@ -60,7 +61,7 @@ def bounded_export(tmp_path_factory):
     scene = make_scene(root / "scene", n_train=8, n_test=2, size=24)
     run = root / "run"
     train(scene, run, small_config(steps=16, batch_rays=512, occupancy_resolution=16, occupancy_warmup=4,
-                                   scene_type="object"), progress_bar=False, log=lambda m: None)
+                                   scene_type="object", deferred=False), progress_bar=False, log=lambda m: None)
     rep = export_onnx_models(run, root / "onnx", cfg=FieldExportConfig(threads=1))
     return {"run": run, "out": root / "onnx", "report": rep,
             "meta": json.loads((root / "onnx" / "metadata.json").read_text())}
