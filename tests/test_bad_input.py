@@ -511,7 +511,8 @@ CASES += [Case(f"arg-{name}", argv, words) for name, argv, words in _ARGS]
 # --- 5. resume: the run continues as it was started -------------------------------------------------------------
 _OTHER_SAMPLER = "--no-dars" if DARS_DEFAULT else "--dars"  # the copied run was trained with the default sampler
 _RESUME = lambda *extra: (lambda c: ["train", *extra, "--resume", "--out", c.t / "r", "--steps", 4])  # noqa: E731
-_OTHER_SHADE = "samples" if make_config("fast").deferred else "rays"  # the copied run shades where the preset does
+# the copied run shades where the preset does: None (by scene type) shades this RGB scene, a room, once per ray
+_OTHER_SHADE = "rays" if make_config("fast").deferred is False else "samples"
 CASES += [
     Case("resume-other-scene", lambda c: ["train", c.t / "s2", "--resume", "--out", c.t / "r", "--steps", 4],
          ("s2", "scene", "another --out"), _both(_copy_run, lambda c: shutil.copytree(c.w.scene, c.t / "s2"))),

@@ -405,6 +405,24 @@ def test_room_geometry_losses_follow_the_scene_type(sample_scene_path):
     assert all(getattr(nerf.losses, k) == 0.0 for k in keys)
 
 
+def test_shading_follows_the_scene_type(sample_scene_path):
+    """The fast preset leaves ``deferred`` None: a room shades once per ray, an object at every sample (NeRF Lego lost
+    2 dB per ray at a 15-minute budget; README "Shading once per ray"); --shade wins over the scene type; the paper
+    preset and the NeRF baseline shade every sample whatever the scene."""
+    from toolkit.train import resolve_config
+
+    scene = load_scene(sample_scene_path, "train")
+    assert make_config("fast", steps=1).deferred is None
+    room, _ = resolve_config(make_config("fast", steps=1), scene)
+    assert room.scene_type == "unbounded" and room.deferred is True
+    obj, _ = resolve_config(make_config("fast", steps=1, scene_type="object"), scene)
+    assert obj.deferred is False
+    asked, _ = resolve_config(make_config("fast", steps=1, scene_type="object", deferred=True), scene)
+    assert asked.deferred is True
+    for cfg in (make_config("paper", steps=1), make_config("fast", steps=1, baseline="nerf", scene_type="room")):
+        assert resolve_config(cfg, scene)[0].deferred is False
+
+
 def test_room_layer_density_on_enabled_faces_only():
     from toolkit.field import DarsField, FieldConfig
 

@@ -82,7 +82,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--shade", choices=["samples", "rays"], default=None,
                    help="where the heads and the PBR shading run: at every sample, shaded colours composited "
                         "(samples), or once per ray on the composited field feature (rays: fewer evaluations a step, "
-                        "so more steps in a --minutes budget); default: the preset's")
+                        "so more steps in a --minutes budget); default: the preset's (fast: rays for a room, samples for an "
+                        "object; paper: samples)")
     q.add_argument("--baseline", choices=["nerf"], help="standard NeRF: radiance head, no priors, no DARS")
     q.add_argument("--albedo-supervision", action="store_true",
                    help="use the scene's ground-truth albedo maps in L_mat (eq. 20); makes albedo MAE circular")

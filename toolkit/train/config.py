@@ -67,14 +67,16 @@ class TrainConfig:
     """Stage (a) length as a fraction of the run (steps or minutes)."""
     light_period: int = 50
     light_steps: int = 5
-    deferred: bool = False
+    deferred: bool | None = False
     """True: the heads and the PBR shading run once per ray, on the ray's composited field feature
-    h̄ = Σ w h / Σ w (``dars train --shade rays``, the ``fast`` preset's since 2026-12-01); False: at every sample,
-    the shaded colours composited (``--shade samples``; the ``paper`` preset and the standard-NeRF baseline). Per
-    ray, a step costs 0.56x (gallery) to 0.46x (the fox) as much on the CPU, so a ``--minutes`` budget takes 1.8-2.2x
-    the steps, and at equal time it gave better test PSNR, normals and depth on every validation pair measured
-    (README, "Shading once per ray"). The dataclass default stays False so runs saved before the option load as they
-    were trained."""
+    h̄ = Σ w h / Σ w (``dars train --shade rays``); False: at every sample, the shaded colours composited
+    (``--shade samples``; the ``paper`` preset and the standard-NeRF baseline); None (the ``fast`` preset's default):
+    chosen by :func:`resolve_config` from the scene type — once per ray for an unbounded scene (a room), at every
+    sample for an object. Per ray, a step costs 0.56x (gallery) to 0.46x (the fox) as much on the CPU, so a
+    ``--minutes`` budget takes 1.8-2.2x the steps; at equal time it gave better test PSNR, normals and depth on every
+    room pair measured, but on NeRF Lego (an object on a transparent background) 25.83 against 27.79 dB at a 15-minute
+    budget (README, "Shading once per ray"). The dataclass default stays False so runs saved before the option load
+    as they were trained; a resolved run records True or False."""
     shading: Literal["pbr", "radiance"] = "pbr"
     """``pbr``: decomposed (material + SH light); ``radiance``: plain NeRF colour head (baseline)."""
     semantics: bool = True
@@ -197,7 +199,8 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
     decaying to 5e-5, L_eikonal after step 2000. GPU-scale.
     ``fast``: the same decomposition, heads, PBR shading and DARS on CPU: hash-grid field (finest resolution
     from the data), 32 coarse + 8 fine samples, 4096-ray batches, L_eikonal after step 500, heads and shading
-    once per ray (``deferred``; the ``radiance`` baseline shades every sample).
+    once per ray in a room and at every sample on an object (``deferred=None``, resolved by :func:`resolve_config`;
+    the ``radiance`` baseline shades every sample).
 
     Sampler: ``dars=True`` (DARS) or ``False`` (uniform pixel selection and hierarchical fine samples; the "w/o DARS"
     row of Table 6); None or not given: :data:`toolkit.defaults.DARS_DEFAULT`. Other ablation switches (Table 6):
@@ -221,7 +224,7 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
             field=FieldConfig(encoding="grid"),
             sampler=SamplerConfig(n_coarse=32, n_fine=8),
             render_sampler=SamplerConfig(n_coarse=64, n_fine=8, perturb=False),
-            batch_rays=4096, ssim_patches=4, losses=LossWeights(eikonal_start=500), deferred=True,
+            batch_rays=4096, ssim_patches=4, losses=LossWeights(eikonal_start=500), deferred=None,
         )
     dars = overrides.pop("dars", None)
     dars = DARS_DEFAULT if dars is None else bool(dars)  # None: the measured default (toolkit.defaults)
@@ -284,6 +287,7 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
     """Fill data-dependent settings; returns the config and the scene with its resolved box.
 
     * ``scene_type`` (``auto`` → ``unbounded`` or ``object``) and with it the field's contraction;
+    * ``deferred`` left None: True (shading once per ray) for an unbounded scene, False for an object;
     * the loss weights left None (:data:`ROOM_LOSSES` for a room, 0 for an object);
     * the scene box (:func:`resolve_scene_box`);
     * with ``auto_resolution`` the hash grid's finest level resolves a quarter of the pixel footprint at the median
@@ -297,6 +301,11 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
         kind = "unbounded"
     if cfg.scene_type != kind or cfg.field.contraction != (kind == "unbounded"):
         cfg = replace(cfg, scene_type=kind, field=replace(cfg.field, contraction=kind == "unbounded", shell=0.0))
+    if cfg.deferred is None:  # the fast preset: once per ray in a room, at every sample on an object (README)
+        cfg = replace(cfg, deferred=kind == "unbounded")
+        if log is not None:
+            log("[dars] shading: " + ("once per ray (a room; --shade samples to shade every sample)" if cfg.deferred
+                                      else "at every sample (an object; --shade rays to shade once per ray)"))
     auto = {k: (v if kind == "unbounded" else 0.0) for k, v in ROOM_LOSSES.items() if getattr(cfg.losses, k) is None}
     if auto:
         cfg = replace(cfg, losses=replace(cfg.losses, **auto))
