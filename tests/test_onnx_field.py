@@ -51,9 +51,9 @@ def radiance_run(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def bounded_export(tmp_path_factory):
-    """A bounded (``scene_type="object"``: no contraction) PBR run shaded at every sample (``--shade samples``; the
-    fast preset's default shades once per ray) on the tiny synthetic scene, a few steps, exported with the render
-    check."""
+    """A bounded (``scene_type="object"``: no contraction) PBR run shaded at every sample (an object's default in the
+    fast preset, pinned here with ``deferred=False`` since the tests below are about the bundle without
+    ``heads.onnx``) on the tiny synthetic scene, a few steps, exported with the render check."""
     from synthetic import make_scene
     from toolkit.train import train
 

@@ -563,7 +563,7 @@ def test_baked_sample_matches_the_field_render(tmp_path_factory, gl):
     figure rises with training (~21 dB after 7.5 min, 24-26 dB after 12.5 min; bench/bench_viewer.py --psnr-run RUN
     measures any run). Since the occupancy grid keeps thin density and the background starts from the border colour
     (issue 16), the 160-step field holds more fog and the albedo agreement measured 23.0-24.0 dB (2026-11-26).
-    Shaded once per ray (the fast preset's default since 2026-12-01) the 160-step run measured lit 24.7-26.3 dB,
+    Shaded once per ray (the fast preset's default for a room since 2026-12-01) the 160-step run measured lit 24.7-26.3 dB,
     albedo 26.1-33.9 dB, but its fog meshes into twice the surface (60k faces, 21.8 m², against 32k and 11.6 m² shaded
     per sample), much of it inside the fog where no view sees it: 37.5 % of the texels are seen by a view (61.8 % per
     sample). Trained to 10 CPU minutes on gallery 1000000 the two agree (95.9 % and 95.5 %), so this is a young
