@@ -423,6 +423,74 @@ def test_shading_follows_the_scene_type(sample_scene_path):
         assert resolve_config(cfg, scene)[0].deferred is False
 
 
+def test_retiming_keeps_the_schedule_continuous():
+    """A re-timed budget's progress runs through its knots without a jump, ends at 1 on the new last step, and the
+    learning-rate decay follows it; an on-time run is left alone; a late one loses at most half its remaining steps
+    per check."""
+    from toolkit.train.step import _progress_at, lr_progress, retime_steps
+
+    base = make_config("fast", minutes=1.0, steps=1000)
+    assert retime_steps(base, 250, 15.0, (96, 5.76), log=lambda m: None) is None  # 0.06 s/step: 60 s
+    steps, knots = retime_steps(base, 250, 30.0, (96, 5.76), log=lambda m: None)  # 0.157 s/step: 148 s
+    assert knots == ((250, 1000),) and steps == 250 + 375  # half the remaining 750 at most
+    fast = retime_steps(base, 250, 7.0, (96, 5.76), log=lambda m: None)  # 0.008 s/step: twice the rest at most
+    assert fast[0] == 250 + 1500
+    cfg = make_config("fast", minutes=1.0, steps=steps, schedule_knots=knots)
+    p = [_progress_at(cfg, k) for k in range(steps + 1)]
+    assert p[:251] == [_progress_at(base, k) for k in range(251)]  # nothing already run changes
+    assert all(b > a for a, b in zip(p, p[1:])) and p[-1] == 1.0
+    assert max(b - a for a, b in zip(p, p[1:])) < 2.5 / 1000  # no jump
+    from types import SimpleNamespace
+
+    lr = [lr_progress(SimpleNamespace(cfg=cfg, step=k)) for k in range(steps + 1)]
+    assert lr[96] == 0.0 and lr[-1] == pytest.approx(1.0) and all(b >= a for a, b in zip(lr, lr[1:]))
+    with pytest.raises(ConfigError, match="schedule knots"):
+        make_config("fast", steps=200, schedule_knots=((250, 1000),))
+    with pytest.raises(ConfigError, match="increasing"):
+        make_config("fast", steps=2000, schedule_knots=((400, 1000), (250, 800)))
+    with pytest.raises(ConfigError, match="beyond"):
+        make_config("fast", steps=2000, schedule_knots=((400, 300),))
+
+
+def test_minutes_budget_retimes_when_steps_get_slower_and_the_log_replays_it(tiny, tmp_path, monkeypatch):
+    """A ``minutes`` budget whose steps triple in cost after the calibration (an occupancy grid filling up, a busier
+    machine) checks its clock at 25/50/75 % and cuts its step count, recorded in ``config.json``; ``--steps N`` with
+    the logged knots replays the run to the same parameters."""
+    import time
+
+    import toolkit.train.loop as loop
+
+    real = loop.train_step
+
+    def slower(state, data):
+        if state.step >= 12:
+            time.sleep(0.2)
+        return real(state, data)
+
+    monkeypatch.setattr(loop, "train_step", slower)
+    cfg = _small(minutes=0.15, calibration_steps=8, checkpoint_every=1000)
+    logs = []
+    a = train(tiny, tmp_path / "a", cfg, progress_bar=False, log=logs.append)
+    meta = json.loads((tmp_path / "a" / "config.json").read_text())
+    cal, knots = meta["calibration"], meta["config"]["schedule_knots"]
+    assert cal["retimed"] and knots and cal["steps"] == meta["config"]["steps"] == cal["retimed"][-1]["steps"]
+    first = int(next(m for m in logs if "timing calibration" in m).split("-> ")[1].split()[0])
+    assert meta["config"]["steps"] < first  # the slower steps cost steps, not minutes
+    replay = [m for m in logs if "--schedule-knots" in m][-1].split("--steps ")[-1].rstrip(")")  # the last check
+    steps, knot_text = replay.split(" --schedule-knots ")
+    assert int(steps) == meta["config"]["steps"]
+    monkeypatch.setattr(loop, "train_step", real)
+    from toolkit.train.config import parse_knots
+
+    b = train(tiny, tmp_path / "b", _small(steps=int(steps), schedule_knots=parse_knots(knot_text),
+                                           calibration_steps=8, checkpoint_every=1000),
+              progress_bar=False, log=lambda m: None)
+    ca, cb = torch.load(a, weights_only=False), torch.load(b, weights_only=False)
+    assert ca["step"] == cb["step"] == int(steps)
+    for k, v in ca["field"].items():
+        assert torch.equal(v, cb["field"][k]), f"parameter {k} differs in the replay"
+
+
 def test_room_layer_density_on_enabled_faces_only():
     from toolkit.field import DarsField, FieldConfig
 

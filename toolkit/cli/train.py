@@ -23,6 +23,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="wall-clock budget: turned into a step count after timing the first steps on this machine "
                         "(logged; --steps N with that count reproduces the run exactly)")
     g.add_argument("--steps", type=COUNT, default=0, help="training steps (every schedule is in steps)")
+    q.add_argument("--schedule-knots", default=None, metavar="S:N,...",
+                   help="with --steps: replay a --minutes run whose clock re-timed its step count mid-run (the knots "
+                        "its log printed: at step S the run had been planned to N steps)")
     q.add_argument("--resume", action="store_true",
                    help="continue the run in --out with its saved scene and settings (--steps/--minutes may extend it)")
     q.add_argument("--force", action="store_true",
@@ -213,6 +216,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise DarsError("give a training length: --minutes M or --steps N")
     if args.resume and args.force:
         raise DarsError("--resume continues the run in --out and --force starts it again: give one of them")
+    if args.schedule_knots and args.resume:
+        raise DarsError("--resume continues a run with the schedule knots it has: drop --schedule-knots")
+    if args.schedule_knots and not args.steps:
+        raise DarsError("--schedule-knots replays a re-timed run: give it with --steps N (both from that run's log)")
     if args.batch_rays and args.batch_rays < 16:
         raise DarsError(f"--batch-rays {args.batch_rays}: give at least 16 rays per step (or leave it out)")
     snapshots = ()
@@ -259,6 +266,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides["deferred"] = args.shade == "rays"
     if snapshots:
         overrides["snapshot_minutes"] = snapshots
+    if args.schedule_knots:
+        from ..train.config import parse_knots
+
+        overrides["schedule_knots"] = parse_knots(args.schedule_knots)
     cfg = make_config(args.preset or "fast", **overrides)
     from dataclasses import replace
 

@@ -130,6 +130,11 @@ class TrainConfig:
     """The first steps, whose schedule does not depend on the run's length (stage a, constant learning rate). A
     ``minutes`` budget becomes a step count after them, timed over their last 24 steps (after the occupancy
     warm-up of ``occupancy_warmup`` steps, so the timing is that of the rest of the run)."""
+    schedule_knots: tuple = ()
+    """``((step, planned_steps), ...)``: where a ``minutes`` budget was re-timed mid-run (:func:`toolkit.train.step.
+    retime_steps`), and the step count planned until then; the schedule's progress is piecewise linear through them
+    (empty: ``step / steps``). Filled by training; ``dars train --steps N --schedule-knots S:N,...`` replays such a
+    run."""
     snapshot_minutes: tuple[float, ...] = ()
     """Save the field at these elapsed training minutes (benchmarks evaluate them)."""
     device: str = "auto"
@@ -145,6 +150,7 @@ class TrainConfig:
             raise ConfigError(f"batch_rays={self.batch_rays} must be >= 16")
         if self.steps < 0 or self.minutes < 0:
             raise ConfigError(f"steps={self.steps} and minutes={self.minutes} must be >= 0")
+        object.__setattr__(self, "schedule_knots", check_knots(self.schedule_knots, self.steps))
         if not 0.0 <= self.pretrain_fraction <= 1.0:
             raise ConfigError(f"pretrain_fraction={self.pretrain_fraction} must be in [0, 1]")
         if self.light_steps >= self.light_period:
@@ -333,3 +339,34 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
     return replace(cfg, field=replace(cfg.field, grid=grid), auto_resolution=False), scene
 
 
+def format_knots(knots) -> str:
+    """``--schedule-knots`` text of ``knots``: ``S:N,S:N``."""
+    return ",".join(f"{int(s)}:{int(n)}" for s, n in knots)
+
+
+def parse_knots(text: str) -> tuple:
+    """``S:N,S:N`` (``--schedule-knots``: at step S the run had been planned to N steps) as ``((S, N), ...)``."""
+    knots = []
+    for part in filter(None, (t.strip() for t in text.split(","))):
+        try:
+            s, n = part.split(":")
+            knots.append((int(s), int(n)))
+        except ValueError:
+            raise ConfigError(f"--schedule-knots: {part!r} is not STEP:STEPS (e.g. 1200:1780), as a --minutes "
+                              "run's timing check logs it") from None
+    return check_knots(tuple(knots))
+
+
+def check_knots(knots: tuple, steps: int | None = None) -> tuple:
+    """``knots`` as a tuple of ``(int, int)`` pairs, checked: steps increasing, each plan past its knot, every knot
+    before ``steps`` (when given)."""
+    knots = tuple((int(s), int(n)) for s, n in knots)
+    prev = 0
+    for s, n in knots:
+        if s <= prev or n <= s:
+            raise ConfigError(f"schedule knots {format_knots(knots)}: each is STEP:STEPS with the steps increasing "
+                              "and STEPS (the plan at that step) beyond STEP")
+        prev = s
+    if steps and knots and knots[-1][0] >= steps:
+        raise ConfigError(f"schedule knots {format_knots(knots)}: the last knot's step must be below steps={steps}")
+    return knots

@@ -20,8 +20,8 @@ from ..scene import load_scene
 from .config import TrainConfig, resolve_config
 from .data import prepare_data
 from .folder import first_checkpoint_due, open_run_dir, read_checkpoint, read_run_config, run_scene_options
-from .step import (TrainingDiverged, TrainState, calibrate_steps, init_state, is_light_step, light_step, lr_progress,
-                   train_step)
+from .step import (RETIME_AT, TrainingDiverged, TrainState, _progress_at, calibrate_steps, init_state, is_light_step,
+                   light_step, lr_progress, retime_steps, train_step)
 
 __all__ = ["train", "save_checkpoint", "load_checkpoint"]
 
@@ -251,6 +251,7 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                unit="step", desc="train")
     t_last_ck = time.monotonic()
     t_window = None
+    mark, checks, calibration = None, [], saved_calibration  # re-timing of a budget calibrated in this call
     last = {}
     try:
         while True:
@@ -296,6 +297,26 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                     state.cfg = local(cfg)
                     bar.total = cfg.steps
                     write_run_config(rec)
+                    calibration, mark = rec, (state.step, state.elapsed)
+                    checks = [p for p in RETIME_AT if p > _progress_at(cfg, state.step)]
+            elif (mark is not None and checks and _progress_at(cfg, state.step) >= checks[0]
+                  and state.step - mark[0] >= n_win):
+                # a calibrated budget checks its clock again: a step may cost more as the occupancy grid fills
+                while checks and _progress_at(cfg, state.step) >= checks[0]:
+                    checks.pop(0)
+                new = retime_steps(cfg, state.step, state.elapsed, mark, log) if main else None
+                if ddp is not None:
+                    new = ddp.broadcast_object(new)
+                mark = (state.step, state.elapsed)
+                if new is not None:
+                    cfg = replace(cfg, steps=new[0], schedule_knots=new[1])
+                    state.cfg = local(cfg)
+                    bar.total = cfg.steps
+                    calibration = {**calibration, "steps": cfg.steps,
+                                   "retimed": [*calibration.get("retimed", []),
+                                               {"at_step": state.step, "elapsed": round(state.elapsed, 2),
+                                                "steps": cfg.steps}]}
+                    write_run_config(calibration)
             if state.step % cfg.log_every == 0 or state.step == 1:
                 if ddp is not None:  # the batch's loss and PSNR over every rank's rays
                     last = ddp.average_scalars(last, ("loss", "psnr"))

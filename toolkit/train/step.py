@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .._checks import DarsError
+from .._checks import ConfigError, DarsError
 from ..field import DarsField
 from ..io import linear_to_srgb, srgb_to_linear
 from ..losses import (compactness_loss, depth_normal_loss, light_residual_loss, material_loss, normal_consistency_loss,
@@ -22,10 +22,12 @@ from ..pixels import PackedViews
 from ..sampling import OccupancyGrid, build_ray_sampler, neighbour_views, select_rays
 from ..scene import Scene, generate_rays
 from .config import SHELL_FADE, TrainConfig, photos_have_transparency
+from .config import check_knots, format_knots, parse_knots  # noqa: F401 - re-exported
 from .data import TrainData
 
 __all__ = ["TrainingDiverged", "TrainState", "Batch", "MAX_BAD_STEPS", "init_state", "progress", "lr_progress",
-           "calibrate_steps", "sample_batch", "train_step", "light_step"]
+           "calibrate_steps", "retime_steps", "parse_knots", "format_knots", "check_knots", "RETIME_AT", "sample_batch",
+           "train_step", "light_step"]
 
 
 class TrainingDiverged(DarsError):
@@ -166,8 +168,24 @@ def progress(state: TrainState) -> float:
 
 
 def _progress_at(cfg, step: int) -> float:
-    """:func:`progress` of step ``step`` of a run with config ``cfg``."""
-    return min(1.0, step / cfg.steps) if cfg.steps else 0.0
+    """:func:`progress` of step ``step`` of a run with config ``cfg``: ``step / cfg.steps``, or, where a ``minutes``
+    budget was re-timed mid-run (:attr:`TrainConfig.schedule_knots`), piecewise linear: each stretch runs on to the
+    step count planned in it, so the schedule stays continuous and a replay computes the same numbers."""
+    return _piecewise(step, 0, cfg) if cfg.steps else 0.0
+
+
+def _piecewise(step: int, start: int, cfg) -> float:
+    """0 at ``start``, 1 at ``cfg.steps``; linear in between, bent at each knot ``(s, n)`` of
+    :attr:`TrainConfig.schedule_knots` (up to step ``s`` the run was planned to end at step ``n``). Without knots this
+    is exactly ``(step - start) / (cfg.steps - start)``."""
+    s0, p0 = start, 0.0
+    for s1, n in getattr(cfg, "schedule_knots", ()):
+        if s1 <= s0:
+            continue
+        if step <= s1:
+            return min(1.0, p0 + (step - s0) / max(1, n - s0) * (1.0 - p0))
+        p0, s0 = p0 + (s1 - s0) / max(1, n - s0) * (1.0 - p0), s1
+    return min(1.0, p0 + (step - s0) / max(1, cfg.steps - s0) * (1.0 - p0))
 
 
 def is_light_step(cfg, step: int) -> bool:
@@ -195,7 +213,7 @@ def lr_progress(state: TrainState) -> float:
     k = min(cfg.calibration_steps, max(0, cfg.steps - 1)) if cfg.steps else cfg.calibration_steps
     if not cfg.steps or state.step <= k:
         return 0.0
-    return min(1.0, (state.step - k) / max(1, cfg.steps - k))
+    return _piecewise(state.step, k, cfg)  # bent where a minutes budget was re-timed, as the progress is
 
 
 def calibrate_steps(state: TrainState, budget_minutes: float, t_window: float, n_window: int, log=print) -> dict:
@@ -212,6 +230,40 @@ def calibrate_steps(state: TrainState, budget_minutes: float, t_window: float, n
     log(f"[dars] timing calibration: {per_step:.3f} s/step on this machine -> {steps} steps for {budget_minutes:g} min "
         f"(reproduce exactly with --steps {steps})")
     return rec
+
+
+RETIME_AT = (0.25, 0.5, 0.75)
+"""Progress at which a calibrated ``minutes`` budget checks its clock again (:func:`retime_steps`)."""
+RETIME_TOLERANCE = 0.08
+"""A re-timing changes the step count only when the projected run time misses the budget by more than this share."""
+
+
+def retime_steps(cfg, step: int, elapsed: float, mark: tuple[int, float], log=print) -> tuple[int, tuple] | None:
+    """Check a calibrated ``minutes`` budget against the clock at step ``step`` (``elapsed`` seconds): the seconds per
+    step since ``mark`` (``(step, elapsed)`` of the calibration or the last check) project the run's end. When that
+    misses the budget by more than :data:`RETIME_TOLERANCE` (a step's cost grew as the occupancy grid filled, or the
+    machine got busier), the remaining steps are rescaled (at most halved or doubled per check) and a knot
+    ``(step, steps planned until then)`` keeps the schedule continuous (:func:`progress`). Returns
+    ``(steps, knots)``, or None when the run is on time. ``--steps N --schedule-knots S:N,...`` (logged) replays it."""
+    n_done = step - mark[0]
+    if n_done <= 0 or step >= cfg.steps:
+        return None
+    per_step = (elapsed - mark[1]) / n_done
+    budget = 60.0 * cfg.minutes
+    projected = elapsed + (cfg.steps - step) * per_step
+    if abs(projected - budget) <= RETIME_TOLERANCE * budget:
+        log(f"[dars] timing check at step {step}: {per_step:.3f} s/step, on schedule ({projected / 60:.3g} of "
+            f"{cfg.minutes:g} min)")
+        return None
+    rest = cfg.steps - step
+    new_rest = int(max(0.0, budget - elapsed) / max(per_step, 1e-9))
+    new_rest = int(min(2 * rest, max((rest + 1) // 2, new_rest, 1)))
+    knots = tuple(cfg.schedule_knots) + ((int(step), int(cfg.steps)),)
+    steps = step + new_rest
+    log(f"[dars] timing check at step {step}: {per_step:.3f} s/step, the run would take {projected / 60:.3g} of "
+        f"{cfg.minutes:g} min -> {steps} steps (reproduce exactly with --steps {steps} --schedule-knots "
+        f"{format_knots(knots)})")
+    return steps, knots
 
 
 # ============================================================================ one step
