@@ -51,10 +51,9 @@ def _train(scene: str, out: Path, minutes: float, snapshots: str, threads: int, 
     t0 = time.time()
     subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": str(threads)})
     rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    import torch
+    from toolkit.train.folder import read_checkpoint
 
-    # the steps trained, from the checkpoint (the log keeps every log_every-th step only)
-    steps = int(torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=False)["step"])
+    steps = int(read_checkpoint(out / "checkpoint.pt")["step"])  # the log keeps every log_every-th step only
     return {"wall_s": time.time() - t0, "peak_rss_mb": max(rss, before) / 1024.0, "steps": steps}
 
 

@@ -20,8 +20,8 @@ from ..scene import load_scene
 from .config import TrainConfig, resolve_config
 from .data import prepare_data
 from .folder import first_checkpoint_due, open_run_dir, read_checkpoint, read_run_config, run_scene_options
-from .step import (RETIME_AT, TrainingDiverged, TrainState, _progress_at, calibrate_steps, init_state, is_light_step,
-                   light_step, lr_progress, retime_steps, train_step)
+from .step import (RETIME_AT, TrainingDiverged, TrainState, calibrate_steps, init_state, is_light_step, light_step,
+                   lr_progress, progress, retime_steps, train_step)
 
 __all__ = ["train", "save_checkpoint", "load_checkpoint"]
 
@@ -298,11 +298,10 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                     bar.total = cfg.steps
                     write_run_config(rec)
                     calibration, mark = rec, (state.step, state.elapsed)
-                    checks = [p for p in RETIME_AT if p > _progress_at(cfg, state.step)]
-            elif (mark is not None and checks and _progress_at(cfg, state.step) >= checks[0]
-                  and state.step - mark[0] >= n_win):
+                    checks = [p for p in RETIME_AT if p > progress(state)]
+            elif mark is not None and checks and progress(state) >= checks[0] and state.step - mark[0] >= n_win:
                 # a calibrated budget checks its clock again: a step may cost more as the occupancy grid fills
-                while checks and _progress_at(cfg, state.step) >= checks[0]:
+                while checks and progress(state) >= checks[0]:
                     checks.pop(0)
                 new = retime_steps(cfg, state.step, state.elapsed, mark, log) if main else None
                 if ddp is not None:

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .._checks import ConfigError, DarsError
+from .._checks import DarsError
 from ..field import DarsField
 from ..io import linear_to_srgb, srgb_to_linear
 from ..losses import (compactness_loss, depth_normal_loss, light_residual_loss, material_loss, normal_consistency_loss,
@@ -22,12 +22,11 @@ from ..pixels import PackedViews
 from ..sampling import OccupancyGrid, build_ray_sampler, neighbour_views, select_rays
 from ..scene import Scene, generate_rays
 from .config import SHELL_FADE, TrainConfig, photos_have_transparency
-from .config import check_knots, format_knots, parse_knots  # noqa: F401 - re-exported
+from .config import format_knots
 from .data import TrainData
 
 __all__ = ["TrainingDiverged", "TrainState", "Batch", "MAX_BAD_STEPS", "init_state", "progress", "lr_progress",
-           "calibrate_steps", "retime_steps", "parse_knots", "format_knots", "check_knots", "RETIME_AT", "sample_batch",
-           "train_step", "light_step"]
+           "calibrate_steps", "retime_steps", "RETIME_AT", "sample_batch", "train_step", "light_step"]
 
 
 class TrainingDiverged(DarsError):
@@ -179,7 +178,7 @@ def _piecewise(step: int, start: int, cfg) -> float:
     :attr:`TrainConfig.schedule_knots` (up to step ``s`` the run was planned to end at step ``n``). Without knots this
     is exactly ``(step - start) / (cfg.steps - start)``."""
     s0, p0 = start, 0.0
-    for s1, n in getattr(cfg, "schedule_knots", ()):
+    for s1, n in cfg.schedule_knots:
         if s1 <= s0:
             continue
         if step <= s1:
