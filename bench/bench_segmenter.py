@@ -82,6 +82,7 @@ def score(net, scene_path: Path, split: str = "test") -> dict:
     if mg:
         out["metal_iou"] = metal_iou(torch.cat(mp), torch.cat(mg), torch.cat(gts))
         out["metal_pixels_gt"] = int(torch.cat(mg).sum())
+        out["metal_pixels_pred"] = int(torch.cat(mp).sum())
     return out
 
 
@@ -106,6 +107,10 @@ def _print_scores(rows: list[tuple[str, dict]]) -> None:
         m = r.get("metal_iou")
         per = " ".join("      -" if r["per_class"].get(c) is None else f"{r['per_class'][c]:7.3f}" for c in SEMANTIC_CLASSES)
         print(f"{name:<40} {r['miou']:6.3f} {('-' if m is None else f'{m:.3f}'):>10}  {per}")
+        if r.get("metal_pixels_gt") == 0 and r.get("metal_pixels_pred"):
+            # IoU 0 here is only false positives: say so rather than let it read as metal that was missed
+            print(f"{'':<40} (no true metal pixel in these views: metal IoU 0 counts the {r['metal_pixels_pred']} "
+                  "pixels predicted metal)")
 
 
 def _score_only(net, validation: list[Path], sample: Path) -> int:
