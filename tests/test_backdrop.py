@@ -17,7 +17,7 @@ from toolkit.io import linear_to_srgb
 from toolkit.pinhole import PinholeCamera, look_at
 from toolkit.pipeline import Background
 from toolkit.scene import Cameras, generate_rays
-from toolkit.sh import eval_sh
+from toolkit.sh import eval_sh, latlong_directions
 from toolkit.viewbake import ViewMaps
 
 SIZE = 16
@@ -241,13 +241,8 @@ def test_build_asset_backdrop_holds_the_field_colour_around_the_mesh():
     assert is_colour[int(corner)] and bd.visibility.reshape(-1)[int(corner)] == 1.0  # past the sphere: the colour
     # at the sphere no uncovered pixel looked: the learned background's visible share, the rest the colour seen
     # nearest to it (not the light), at visibility 1
-    from toolkit.backdrop import background_visibility
-    from toolkit.sh import latlong_directions
-
-    base_rad, base_vis = Backdrop(field.background.detach().numpy() if hasattr(field.background, "detach")
-                                  else np.asarray(field.background), background_visibility(
-                                      views(field.cameras), *np.asarray(field.background).shape[:2])).sample(
-        latlong_directions(32, 64).reshape(-1, 3)[int(centre)][None])
+    base = backdrop_from_views(field.background, views(field.cameras))  # the background map and its visibility
+    base_rad, base_vis = base.sample(latlong_directions(32, 64).reshape(-1, 3)[int(centre)][None])
     want = float(base_vis[0]) * base_rad[0].numpy() + (1.0 - float(base_vis[0])) * colour.numpy()
     np.testing.assert_allclose(rad[int(centre)], want, atol=1e-4)
     assert not is_colour[int(centre)] or float(base_vis[0]) < 1e-6

@@ -22,8 +22,8 @@ mean rendered colour of those pixels (averaged as photos are shown: clamped, sRG
 (:func:`backdrop_from_views`, a 32×64 map). The other texels take the colour of the nearest texel that was seen,
 keeping the background map's visible share, also at visibility 1: a test view looks through a hole in the mesh in
 directions no training view did, and what the field drew behind it is nearer that colour than the light's radiance
-(on validation gallery 1000007, +1.4 dB preview over three seeds; README). On the validation galleries the uncovered pixels were 7-15 % of the test views
-but 30-53 % of the preview's squared error before this.
+(on validation gallery 1000007, +1.4 dB preview over three seeds; README). On the validation galleries the
+uncovered pixels were 7-15 % of the test views but 30-53 % of the preview's squared error before this.
 
 The GLB stores it in its root ``extras.dars.backdrop`` (:meth:`Backdrop.to_json`); :func:`export.gltf.load_glb`
 reads it back, :mod:`viewers.preview` draws it (``PreviewConfig.background``).
@@ -44,6 +44,7 @@ import torch
 
 from ._checks import SceneError, ShapeError
 from .cameras import generate_rays
+from .io import linear_to_srgb, srgb_to_linear
 from .sh import latlong_angles, latlong_directions, lookup_latlong
 
 __all__ = ["Backdrop", "background_visibility", "backdrop_from_views", "mesh_coverage"]
@@ -198,8 +199,6 @@ def _uncovered_radiance(views, covered: torch.Tensor, height: int, width: int) -
     texel sees the dark ceiling from most cameras and a skylight or a lamp from a few, and the linear mean drew the
     whole ceiling pale. The cost: a texel's radiance is at most 1, so a viewer that lowers the exposure shows a
     bright sky grey instead of keeping its HDR level."""
-    from .io import linear_to_srgb, srgb_to_linear
-
     total = torch.zeros(height * width, 3, dtype=torch.float64)
     count = torch.zeros(height * width, dtype=torch.float64)
     cams = views.cameras.to("cpu")
