@@ -31,6 +31,10 @@ Conventions (fixed; ``tests/test_gltf.py`` checks each):
   sky, the white behind an object, holes in the mesh — from the field's renders) in the root ``extras.dars.backdrop``: a lat-long map in our
   +z-up world frame, linear radiance and a per-texel visibility (:class:`toolkit.backdrop.Backdrop`, passed in
   ``extras``); :func:`load_glb` reads it into :attr:`GltfAsset.backdrop`. Other glTF viewers ignore it.
+* **Light tint.** Textures with a ``light_tint`` (:class:`toolkit.bake.PBRTextures`: the colour of the field's
+  per-point light, which the grey occlusion channel cannot hold) add a fourth texture, named in the root
+  ``extras.dars.light_tint`` (``index``, ``scale``); ``dars view`` and the WebXR page multiply the shaded colour by
+  texel × scale, other glTF viewers ignore it; :func:`load_glb` reads it into ``images["light_tint"]``.
 """
 
 from __future__ import annotations
@@ -259,6 +263,15 @@ def export_gltf(uvmesh, textures, path: str | Path, sh=None, *, semantics: Liter
         "occlusionTexture": {"index": 1, "strength": 1.0},
         "doubleSided": bool(cfg.double_sided),
     }
+    tint = getattr(textures, "light_tint", None)
+    if tint is not None:
+        from toolkit.bake import LIGHT_TINT_SCALE
+
+        gltf_textures.append({"sampler": 0, "source": add_image(tint, "light_tint")})
+        light_tint = {"index": len(gltf_textures) - 1, "texCoord": 0, "scale": LIGHT_TINT_SCALE,
+                      "meaning": "the colour of the field's per-point light (toolkit.train.run.light_tint_map), linear "
+                                 "RGB / scale; a viewer multiplies its shaded colour (diffuse and specular, with the "
+                                 "occlusion) by texel x scale. Viewers that do not read it show the grey occlusion."}
 
     dars_extras: dict[str, Any] = {
         "up_axis": "glTF +y; converted from the dars world (+z up) by (x, y, z) -> (x, z, -y)",
@@ -267,6 +280,8 @@ def export_gltf(uvmesh, textures, path: str | Path, sh=None, *, semantics: Liter
         "semantics": "one primitive per class (primitive extras.semantic_class)" if labels is not None else "none",
         "texture_defaults": list(getattr(textures, "defaults", ())),
     }
+    if tint is not None:
+        dars_extras["light_tint"] = light_tint
     root: dict[str, Any] = {
         "asset": {"version": "2.0", "generator": "dars toolkit (export/gltf.py)"},
         "scene": 0,
@@ -466,6 +481,7 @@ class GltfAsset:
         tangents: float32 [V, 4] world tangent xyz + w, or None.
         positions_gltf: float32 [V, 3] positions as stored (+y up).
         images: decoded material images by role: ``base_color``, ``orm`` (also ``occlusion`` if different),
+            ``light_tint`` (``extras.dars.light_tint``: tint / its ``scale``, linear; :mod:`toolkit.bake`),
             ``normal`` (uint8 H-W-C).
         sh: float64 [9, 3] the raw SPEC SH from ``extras.dars.sh`` (world frame), or None.
         ibl: the ``EXT_lights_image_based`` light dict as stored, or None.
@@ -632,6 +648,9 @@ def _load_glb(path: Path) -> GltfAsset:
             and np.array_equal(images["occlusion"], images["orm"]):
         del images["occlusion"]
     dars = (root.get("extras") or {}).get("dars") or {}
+    tint_ref = dars.get("light_tint")
+    if isinstance(tint_ref, dict) and isinstance(tint_ref.get("index"), int) and 0 <= tint_ref["index"] < len(textures):
+        images["light_tint"] = image(textures[tint_ref["index"]]["source"])
     sh = np.asarray(dars["sh"]["coeffs"], dtype=np.float64) if "sh" in dars else None
     ibl = None
     ibl_images: list[list[np.ndarray]] = []

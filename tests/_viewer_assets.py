@@ -29,13 +29,15 @@ CUBE_SH[2] += 0.8  # brighter from above
 
 
 def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True, extras: dict | None = None,
-                  occlusion: float = 1.0) -> Path:
+                  occlusion: float = 1.0, light_tint=None) -> Path:
     """A unit cube centred at the origin as a GLB: 6 faces in a 3 x 2 atlas (``cell`` px per face, 2 px margins),
     per-face albedo / roughness / metallic (:data:`CUBE_ALBEDO` …), one semantic primitive per face.
 
     ``pattern``: a checker in the base colour and a ripple in the normal map of faces 0, 2, 4 (tilting the normal
     along the face's tangent); without it every face is flat and uniform (an analytic reference is exact).
     ``extras``: merged into the GLB's ``extras.dars`` (e.g. a backdrop). ``occlusion``: ORM red on every face.
+    ``light_tint``: an RGB light tint (linear, at most :data:`toolkit.bake.LIGHT_TINT_SCALE`) on every face, stored
+    as the GLB's light-tint texture; None: no such texture.
     """
     verts, uvs, nrms, faces, labels = [], [], [], [], []
     width, height = 3 * cell, 2 * cell
@@ -71,8 +73,14 @@ def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True, 
         nt[..., 0] = np.where(face % 2 == 0, ripple, 0.0)
     nt /= np.linalg.norm(nt, axis=-1, keepdims=True)
     normal = np.round((nt + 1) / 2 * 255).astype(np.uint8)
-    return export_gltf(uvm, PBRTextures(base_color, orm, normal, np.ones((height, width), bool)), path, sh=sh,
-                       extras=extras)
+    tint = None
+    if light_tint is not None:
+        from toolkit.bake import LIGHT_TINT_SCALE
+
+        tint = np.round(np.broadcast_to(np.asarray(light_tint, float) / LIGHT_TINT_SCALE, (height, width, 3)) * 255)
+        tint = tint.astype(np.uint8)
+    return export_gltf(uvm, PBRTextures(base_color, orm, normal, np.ones((height, width), bool), light_tint=tint),
+                       path, sh=sh, extras=extras)
 
 
 # ------------------------------------------------------------------------------------------- trained sample (slow)

@@ -184,3 +184,43 @@ def test_bake_mesh_takes_the_normal_map_from_the_views_when_asked():
     far = Mesh(_floor_quad().vertices + np.float32([20, 0, 0]), _floor_quad().faces, normals=_floor_quad().normals)
     _, unseen, _ = bake_mesh(far, _blue, AssetConfig(texture=64), views=maps)  # views: the default
     assert np.allclose(unseen.normal[unseen.mask].astype(np.float64) / 255.0 * 2.0 - 1.0, [0, 0, 1], atol=0.01)
+
+
+def test_light_tint_map():
+    """The colour the luminance gain drops: per channel, shaded over globally shaded, over the luminance gain."""
+    from toolkit.metrics import REC709_LUMA
+    from toolkit.train.run import light_gain_map, light_tint_map
+
+    glob = torch.tensor([[0.2, 0.2, 0.2], [0.2, 0.2, 0.2], [0.2, 0.0, 0.2], [0.2, 0.2, 0.2], [0.1, 0.1, 0.1]])
+    shaded = torch.tensor([[0.4, 0.4, 0.4], [0.3, 0.2, 0.1], [0.3, 0.5, 0.1], [0.2, 0.2, 1.0], [0.3, 0.1, 0.1]])
+    opacity = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.3])
+    tint = light_tint_map(shaded, glob, opacity)
+    assert torch.allclose(tint[0], torch.ones(3))  # a grey change of light: no tint
+    per = torch.tensor([1.5, 1.0, 0.5])
+    lum = float(per @ torch.tensor(REC709_LUMA))
+    assert torch.allclose(tint[1], per / lum, atol=1e-5)  # warmer, of luminance 1
+    assert float(tint[1] @ torch.tensor(REC709_LUMA)) == pytest.approx(1.0, abs=1e-5)
+    assert tint[2, 1] == 1.0  # a channel black under the global light: 1 there
+    assert tint[3, 2] == 2.0  # clamped at the texture's range
+    assert torch.allclose(tint[4], torch.ones(3))  # too translucent
+    gain = light_gain_map(shaded, glob, opacity)
+    assert torch.allclose((gain[:2, None] * tint[:2]) * glob[:2], shaded[:2], atol=1e-5)  # gain x tint = the field
+
+
+def test_bake_mesh_bakes_the_light_tint_texture():
+    """With views holding ``light_tint`` (and ``light_gain``), the bake writes the tint / 2 texture (the views' mean
+    where they see a texel); ``light_tint=False`` or no occlusion: no texture."""
+    from toolkit.asset import AssetConfig, bake_mesh
+    from toolkit.bake import LIGHT_TINT_SCALE
+
+    m = _maps()
+    gain = torch.ones(4, SIZE, SIZE)
+    tint = torch.tensor([[1.2, 1.0, 0.6], [1.4, 1.0, 0.8], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]])[:, None, None, :]
+    tint = tint.expand(4, SIZE, SIZE, 3).clone()
+    maps = ViewMaps(m.cameras, m.depth, m.opacity, {**m.values, "light_gain": gain, "light_tint": tint})
+    _, tex, _ = bake_mesh(_floor_quad(), _blue, AssetConfig(texture=64), views=maps)
+    assert tex.light_tint is not None and tex.light_tint.shape == (64, 64, 3) and tex.light_tint.dtype == np.uint8
+    got = tex.light_tint[tex.mask].astype(np.float64) / 255.0 * LIGHT_TINT_SCALE
+    assert np.allclose(got.mean(0), [1.3, 1.0, 0.7], atol=0.01)  # A and B see the floor
+    for cfg in (AssetConfig(texture=64, light_tint=False), AssetConfig(texture=64, light_occlusion=False)):
+        assert bake_mesh(_floor_quad(), _blue, cfg, views=maps)[1].light_tint is None

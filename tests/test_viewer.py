@@ -268,6 +268,32 @@ def test_occlusion_channel_scales_the_lit_colour(gl, flat_cube_glb, tmp_path):
     assert np.abs(a.image.astype(int) - b.image.astype(int))[a.mask & b.mask].max() <= 2
 
 
+def test_light_tint_texture_tints_the_lit_colour(gl, flat_cube_glb, tmp_path):
+    """The GLB's light-tint texture (extras.dars.light_tint, tint / 2 in 8 bits) multiplies the lit colour per
+    channel, and load_glb reads it back; the other modes and GLBs without it are unchanged."""
+    from export.gltf import load_glb
+    from toolkit.io import srgb_to_linear
+    from viewers.preview import OffscreenPreview, PreviewConfig
+
+    tinted = textured_cube(tmp_path / "tinted.glb", pattern=False, light_tint=(1.2, 1.0, 0.5))
+    asset = load_glb(tinted)
+    assert asset.images["light_tint"].shape[-1] == 3 and asset.json["extras"]["dars"]["light_tint"]["scale"] == 2.0
+    assert "light_tint" not in load_glb(flat_cube_glb).images
+    cam = _cam([1.4, -2.2, 1.3])
+    imgs, albedos = [], []
+    for glb in (flat_cube_glb, tinted):
+        with OffscreenPreview(glb, ctx=gl) as view:
+            img = view.render(cam, PreviewConfig(exposure=-1.0))
+            albedos.append(view.render(cam, PreviewConfig(mode="albedo")).image)
+        imgs.append(srgb_to_linear(img.to_float()[img.mask]))
+    full, tint = imgs
+    bright = (full > 0.05).all(1)
+    ratio = np.median(tint[bright] / full[bright], 0)
+    stored = np.round(np.array([1.2, 1.0, 0.5]) / 2 * 255) / 255 * 2
+    assert bright.sum() > 1000 and np.allclose(ratio, stored, atol=0.015), ratio
+    assert np.array_equal(albedos[0], albedos[1])
+
+
 def test_normal_map_decodes_to_the_baked_field_normal(gl, tmp_path):
     """Bake a tilted normal field onto a sphere (toolkit.bake), export, render ``normals``: the decoded world normal
     matches the field's at the ray-cast hit (tangent frame, handedness and axis conversion agree with the bake)."""

@@ -191,6 +191,18 @@ def test_page_renders_in_headless_chromium_like_dars_view(page, serve, tmp_path)
     assert psnr_db >= 30.0, f"page vs dars view: PSNR {psnr_db:.1f} dB (bound 30 dB)"
 
 
+def _site(glb, out):
+    """export_web of ``glb`` into ``out``; skips when three.js is not installed."""
+    from viewers.web import export_web
+
+    try:
+        return export_web(glb, out)
+    except DarsError as e:
+        if "three.js not found" in str(e):
+            pytest.skip(f"three.js is not installed (node/npm missing?): {e}")
+        raise
+
+
 def test_page_draws_the_backdrop_like_dars_view(serve, tmp_path):
     """A GLB with a backdrop (toolkit.backdrop): the page draws it behind the model, blended with the SH radiance by
     its visibility, as ``dars view`` does (a half-float texture there, float32 here). Its occlusion channel (0.6)
@@ -202,12 +214,7 @@ def test_page_draws_the_backdrop_like_dars_view(serve, tmp_path):
     rng = np.random.default_rng(8)
     bd = Backdrop(rng.uniform(0, 1.2, (8, 16, 3)), rng.uniform(0, 1, (8, 16)))
     glb = textured_cube(tmp_path / "cube.glb", extras={"backdrop": bd.to_json(), "light_scale": 1.5}, occlusion=0.6)
-    try:
-        site = export_web(glb, tmp_path / "site")
-    except DarsError as e:
-        if "three.js not found" in str(e):
-            pytest.skip(f"three.js is not installed (node/npm missing?): {e}")
-        raise
+    site = _site(glb, tmp_path / "site")
     light = json.loads(site.light_json.read_text())
     assert light["background"] == "backdrop" and light["backdrop"]["height"] == 8
     assert light["sky_scale"] == pytest.approx(1 / 1.5)
@@ -223,6 +230,30 @@ def test_page_draws_the_backdrop_like_dars_view(serve, tmp_path):
     assert psnr_db >= 30.0, f"page vs dars view with the backdrop: PSNR {psnr_db:.1f} dB (bound 30 dB)"
     with pytest.raises(ConfigError, match="carries no backdrop"):
         export_web(textured_cube(tmp_path / "plain.glb"), tmp_path / "plain", cfg=WebConfig(background="backdrop"))
+
+
+def test_page_applies_the_light_tint_like_dars_view(serve, tmp_path):
+    """A GLB with a light-tint texture (the colour of the field's per-point light, toolkit.asset
+    AssetConfig.light_tint): the page multiplies the model's shading by it as ``dars view`` does, a visible change
+    of colour against the same cube without it."""
+    from viewers.preview import render_preview
+    from viewers.web import view_camera_from_web
+
+    glb = textured_cube(tmp_path / "cube.glb", light_tint=(1.3, 1.0, 0.6))
+    site = _site(glb, tmp_path / "site")
+    w, h = 320, 240
+    report = _web_check(serve(site.out_dir) + "/index.html?dpr=1&noaa", tmp_path / "page.png", w, h)
+    assert report["ready"] and not report["console_errors"] and not report["page_errors"], report
+    shot = read_image(tmp_path / "page.png")[..., :3]
+    cam = view_camera_from_web(json.loads(site.light_json.read_text())["camera"], w, h)
+    ref = render_preview(glb, cam)
+    plain = render_preview(textured_cube(tmp_path / "plain.glb"), cam)
+    m = ref.mask
+    assert m.mean() > 0.1
+    ratio = ref.to_float()[m].mean(0) / np.maximum(plain.to_float()[m].mean(0), 1e-6)
+    assert ratio[0] > 1.05 and ratio[2] < 0.85, ratio  # warmer: red up, blue down
+    psnr_db = -10 * np.log10(max(float(((shot - ref.to_float()) ** 2).mean()), 1e-12))
+    assert psnr_db >= 30.0, f"page vs dars view with a light tint: PSNR {psnr_db:.1f} dB (bound 30 dB)"
 
 
 def test_page_with_threejs_stock_shading_loads(page, serve, tmp_path):

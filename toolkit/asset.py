@@ -108,6 +108,11 @@ class AssetConfig:
     :data:`LIGHT_SCALE_QUANTILE` quantile over the rendered pixels, at least 1), and the GLB's SH is the run's times
     ``s``: a viewer that multiplies its SH lighting by the occlusion (ours, three.js) shades each texel with gain ×
     the run's light. Off: occlusion 1 and the run's SH (the GLB of earlier versions)."""
+    light_tint: bool = True
+    """With ``light_occlusion``: also bake the colour of Δl(x) that the grey occlusion drops (each texel's
+    :func:`toolkit.train.run.light_tint_map`, mean over the views that see it) into a light-tint texture that the
+    GLB names in ``extras.dars.light_tint``; our viewers (``dars view``, the WebXR page) multiply the shaded colour
+    by it, other glTF viewers ignore it. Off: no tint texture (the GLB of earlier versions)."""
     backdrop: bool = True
     """Store a backdrop in the GLB (:mod:`toolkit.backdrop`: what the viewers draw where the mesh is not — a
     gallery's sky, the white behind an object, the holes in the mesh): the field's rendered colour in the directions
@@ -410,6 +415,8 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
         if cfg.light_occlusion and "light_gain" in views.values:
             scale = light_scale(views)
             keys = (*keys, "light_gain")
+            if cfg.light_tint and "light_tint" in views.values:
+                keys = (*keys, "light_tint")
         texel_fn = view_projected(material_fn, views, cfg.view_tolerance, keys=keys, stats=seen)
         if "light_gain" in keys:
             texel_fn = _with_occlusion(texel_fn, scale)

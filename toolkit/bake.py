@@ -20,7 +20,9 @@ Field interface: ``material_fn(points float [N, 3], normals float [N, 3] | None)
 [N, 3] linear in [0, 1], ``roughness`` [N], ``metallic`` [N], ``normal`` [N, 3] (unit, world space), ``semantic``
 [N] int class ids; missing keys are baked with :data:`DEFAULT_MATERIAL` and listed in ``PBRTextures.defaults``.
 An optional ``occlusion`` [N] in [0, 1] is baked into ORM red (times the ray-cast ambient occlusion when
-``BakeConfig.ao_samples`` > 0); without it, red is that ambient occlusion alone (1 when there is none).
+``BakeConfig.ao_samples`` > 0); without it, red is that ambient occlusion alone (1 when there is none). An optional
+``light_tint`` [N, 3] in [0, :data:`LIGHT_TINT_SCALE`] (the colour of the field's per-point light,
+:func:`toolkit.train.run.light_tint_map`) is baked into ``PBRTextures.light_tint``, linear, as tint / that scale.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ __all__ = [
     "BakeConfig",
     "PBRTextures",
     "DEFAULT_MATERIAL",
+    "LIGHT_TINT_SCALE",
     "unwrap_uv",
     "compute_tangents",
     "rasterize_triangles",
@@ -51,6 +54,9 @@ __all__ = [
     "label_faces",
     "fill_background",
 ]
+
+LIGHT_TINT_SCALE = 2.0
+"""``PBRTextures.light_tint`` stores tint / this (8 bits, linear): tints up to 2 per channel, 1 at 128/255."""
 
 DEFAULT_MATERIAL: dict[str, object] = {"albedo": (0.5, 0.5, 0.5), "roughness": 1.0, "metallic": 0.0}
 """Baked where ``material_fn`` lacks a key: mid-grey linear albedo, fully rough (glTF's default roughness),
@@ -447,6 +453,8 @@ class PBRTextures:
         normal: uint8 [H, W, 3] tangent-space normal map, (n + 1)/2, +y = green = up.
         mask: bool [H, W] texels inside a chart (before the background fill).
         defaults: material keys ``material_fn`` did not provide (baked from :data:`DEFAULT_MATERIAL`).
+        light_tint: uint8 [H, W, 3] linear tint / :data:`LIGHT_TINT_SCALE` (module docstring), or None when
+            ``material_fn`` gave none.
     """
 
     base_color: np.ndarray
@@ -454,6 +462,7 @@ class PBRTextures:
     normal: np.ndarray
     mask: np.ndarray
     defaults: tuple[str, ...] = ()
+    light_tint: np.ndarray | None = None
 
     @property
     def size(self) -> int:
@@ -525,6 +534,7 @@ def bake_pbr_textures(uvmesh: UVMesh, material_fn: MaterialFn, cfg: BakeConfig =
     metal = np.empty(n_tex, np.float32)
     nmap = np.empty((n_tex, 3), np.float32)
     occl = np.ones(n_tex, np.float32)
+    tint: np.ndarray | None = None
     missing: set[str] = set()
     ao_scene = _ray_scene(uvmesh) if cfg.ao_samples > 0 else None
     ao_dist = cfg.ao_distance or 0.1 * uvmesh.to_mesh().diagonal
@@ -548,6 +558,13 @@ def bake_pbr_textures(uvmesh: UVMesh, material_fn: MaterialFn, cfg: BakeConfig =
                 nmap[s:e] = (0.0, 0.0, 1.0)
             if "occlusion" in out:
                 occl[s:e] = _get(out, "occlusion", (m,), missing)
+            if "light_tint" in out:
+                if tint is None:
+                    tint = np.ones((n_tex, 3), np.float32)
+                a = _to_numpy(out["light_tint"], "light_tint").astype(np.float32)
+                if a.size != m * 3:
+                    raise ShapeError(f"material_fn()['light_tint']: expected shape [{m}, 3], got {list(a.shape)}")
+                tint[s:e] = np.clip(a.reshape(m, 3), 0.0, LIGHT_TINT_SCALE)
             if cfg.ao_samples > 0:
                 occl[s:e] *= _ambient_occlusion(ao_scene, pos, n, cfg.ao_samples, ao_dist, seed=cfg.seed + s)
             bar.update(m)
@@ -588,7 +605,10 @@ def bake_pbr_textures(uvmesh: UVMesh, material_fn: MaterialFn, cfg: BakeConfig =
     orm = finish(np.stack([occl, rough, metal], 1), "orm")
     del occl, rough, metal
     normal = finish(nmap, "normal")
-    return PBRTextures(base_color=base_color, orm=orm, normal=normal, mask=mask, defaults=tuple(sorted(missing)))
+    del nmap
+    light_tint = None if tint is None else finish(tint / LIGHT_TINT_SCALE, "tint")
+    return PBRTextures(base_color=base_color, orm=orm, normal=normal, mask=mask, defaults=tuple(sorted(missing)),
+                       light_tint=light_tint)
 
 
 def _get(out: Mapping, key: str, shape: tuple[int, ...], missing: set[str]) -> np.ndarray:

@@ -30,9 +30,10 @@ from .cameras import Cameras, project_points
 
 __all__ = ["ViewMaps", "project_views", "view_projected", "VIEW_DEFAULTS"]
 
-VIEW_DEFAULTS: dict[str, object] = {**DEFAULT_MATERIAL, "light_gain": 1.0}
+VIEW_DEFAULTS: dict[str, object] = {**DEFAULT_MATERIAL, "light_gain": 1.0, "light_tint": (1.0, 1.0, 1.0)}
 """What a point no view sees gets for a key the material callable lacks: the bake's defaults, and no change of
-light (``light_gain`` 1, :func:`toolkit.train.run.light_gain_map`)."""
+light (``light_gain`` 1 and a white ``light_tint``: :func:`toolkit.train.run.light_gain_map`,
+:func:`~toolkit.train.run.light_tint_map`)."""
 
 
 @dataclass(frozen=True)

@@ -140,6 +140,8 @@ _MESH_FS = """
 uniform sampler2D u_base_color;   // sRGB texture: reads linear
 uniform sampler2D u_orm;          // R occlusion, G roughness, B metallic (linear)
 uniform sampler2D u_normal_map;   // tangent space, (n + 1) / 2
+uniform sampler2D u_light_tint;   // linear tint / u_tint_scale (extras.dars.light_tint; white, scale 1 without)
+uniform float u_tint_scale;
 uniform vec4 u_base_factor;
 uniform vec2 u_metal_rough_factor;
 uniform float u_normal_scale;
@@ -186,7 +188,9 @@ void main() {
         DarsShading s = dars_shade_pbr(albedo, roughness, metallic, n_world, v_world, u_sh);
         // glTF occlusion (ORM red) scales the SH lighting, diffuse and specular: three.js (the WebXR page) does
         // the same; dars bakes the field's per-point light gain into it (toolkit.asset.AssetConfig.light_occlusion)
-        display = dars_linear_to_srgb(clamp(s.colour * orm.r * u_exposure_scale, 0.0, 1.0));
+        // and that light's colour into the light-tint texture (AssetConfig.light_tint)
+        vec3 tint = texture(u_light_tint, v_uv).rgb * u_tint_scale;
+        display = dars_linear_to_srgb(clamp(s.colour * orm.r * tint * u_exposure_scale, 0.0, 1.0));
     } else if (u_mode == 1) {
         display = dars_linear_to_srgb(albedo);
     } else if (u_mode == 2) {
@@ -319,6 +323,9 @@ class PreviewRenderer:
         self.base_color = self._texture(images.get("base_color"), np.array([188, 188, 188], np.uint8), srgb=True)
         self.orm = self._texture(images.get("orm"), np.array([255, 255, 0], np.uint8))
         self.normal_map = self._texture(images.get("normal"), np.array([128, 128, 255], np.uint8))
+        self.light_tint = self._texture(images.get("light_tint"), np.array([255, 255, 255], np.uint8))
+        tint_ref = ((asset.json.get("extras") or {}).get("dars") or {}).get("light_tint") or {}
+        self.tint_scale = float(tint_ref.get("scale", 1.0)) if "light_tint" in images else 1.0
         size, blob = dfg_texture_bytes()
         self.dfg = self._keep(ctx.texture(size, 2, blob, dtype="f4"))
         self.dfg.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -452,8 +459,10 @@ class PreviewRenderer:
         _set(p, "u_mode", _MODE_INDEX[cfg.mode])
         _set(p, "u_exposure_scale", exposure_scale)
         _set(p, "u_sh", sh_value)
+        _set(p, "u_tint_scale", self.tint_scale)
         for unit, (name, tex) in enumerate((("u_base_color", self.base_color), ("u_orm", self.orm),
-                                            ("u_normal_map", self.normal_map), (DFG_UNIFORM, self.dfg))):
+                                            ("u_normal_map", self.normal_map), (DFG_UNIFORM, self.dfg),
+                                            ("u_light_tint", self.light_tint))):
             tex.use(unit)
             _set(p, name, unit)
         if cfg.mode == "semantics":

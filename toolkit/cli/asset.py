@@ -86,6 +86,10 @@ def add_bake_options(q: argparse.ArgumentParser, backdrop: bool = True) -> None:
                        help="--bake-from views: leave the field's per-point light out of the GLB's occlusion channel "
                             "(occlusion 1, the run's own SH); by default each texel's occlusion is its light gain "
                             "over a scale s and the GLB's SH is the run's times s")
+        q.add_argument("--no-light-tint", dest="light_tint", action="store_false",
+                       help="--bake-from views: store no light-tint texture (the colour of the field's per-point "
+                            "light, which the grey occlusion channel cannot hold; read by dars view and the WebXR "
+                            "page, ignored by other glTF viewers)")
         q.add_argument("--no-backdrop", dest="backdrop", action="store_false",
                        help="store no backdrop in the GLB (what the viewers draw where the mesh is not — a gallery's "
                             "sky, the white behind an object, holes in the mesh — taken from the field's renders)")
@@ -131,7 +135,8 @@ def asset_config(args: argparse.Namespace):
 
     names = ("method", "resolution", "level", "level_quantile", "faces", "simplify", "min_component", "min_seen",
              "keep_unseen", "depth_samples", "depth_min_opacity", "depth_rays", "texture", "supersample", "ao_samples",
-             "bake_from", "view_rays", "normals_from", "view_tolerance", "light_occlusion", "backdrop", "device")
+             "bake_from", "view_rays", "normals_from", "view_tolerance", "light_occlusion", "light_tint", "backdrop",
+             "device")
     return AssetConfig(**{k: getattr(args, k) for k in names if hasattr(args, k)})
 
 

@@ -30,7 +30,7 @@ from .data import prepare_data
 from .folder import find_run, read_checkpoint, read_run_config, run_scene_options
 
 __all__ = ["Run", "load_run", "render_views", "FieldCallables", "field_callables", "load_field_callables",
-           "run_field_callables", "render_view_maps", "light_gain_map", "light_residual_off"]
+           "run_field_callables", "render_view_maps", "light_gain_map", "light_tint_map", "light_residual_off"]
 
 
 @dataclass
@@ -299,6 +299,29 @@ def light_gain_map(shaded: torch.Tensor, shaded_global: torch.Tensor, opacity: t
     return gain.clamp(0.0, LIGHT_GAIN_MAX)
 
 
+def light_tint_map(shaded: torch.Tensor, shaded_global: torch.Tensor, opacity: torch.Tensor,
+                   min_opacity: float = 0.5) -> torch.Tensor:
+    """The colour of the field's per-point light Δl(x) that :func:`light_gain_map`'s one luminance factor drops:
+    per channel, the shaded colour over that of the same render under the global SH alone, divided by the luminance
+    gain. Float [..., 3] in [0, :data:`toolkit.bake.LIGHT_TINT_SCALE`] (what the GLB's texture holds), of
+    luminance 1 where nothing clamps; 1 where the pixel is less opaque than ``min_opacity`` or a channel shades to
+    (nearly) black under the global light.
+
+    A viewer that multiplies its shaded colour by gain × tint shades each pixel with the field's own light colour
+    (an RGB residual, ``FieldConfig.light_residual_colour="rgb"``, tints a wall warmer under a lamp or bluer under a
+    window); the GLB's occlusion channel can only hold the gain."""
+    from ..bake import LIGHT_TINT_SCALE
+    from ..metrics import REC709_LUMA
+
+    w = torch.tensor(REC709_LUMA, dtype=shaded.dtype, device=shaded.device)
+    num, den = shaded @ w, shaded_global @ w
+    ok = (opacity >= min_opacity) & (den > 1e-4) & (num > 1e-4)
+    per = shaded / shaded_global.clamp_min(1e-4)
+    tint = per / (num / den.clamp_min(1e-4)).clamp_min(1e-4)[..., None]
+    tint = torch.where(ok[..., None] & (shaded_global > 1e-4), tint, torch.ones_like(tint))
+    return tint.clamp(0.0, LIGHT_TINT_SCALE)
+
+
 @contextmanager
 def light_residual_off(run: Run):
     """For the ``with`` block, the run's field without its light residual head (shaded by the global SH alone);
@@ -317,7 +340,8 @@ def render_view_maps(run: Run, cameras: Cameras, progress: bool = True, light_ga
     settings (the DARS sampler's W maps included when the run has them). With ``light_gain``, a field with a
     per-point light residual Δl(x) is rendered a second time with the global SH alone (:func:`light_residual_off`),
     for the ``light_gain`` map (:func:`light_gain_map`: what the GLB's occlusion channel carries,
-    :func:`toolkit.asset.bake_mesh`)."""
+    :func:`toolkit.asset.bake_mesh`) and the ``light_tint`` map (:func:`light_tint_map`: its colour, the GLB's
+    light-tint texture)."""
     from tqdm import tqdm
 
     from ..viewbake import ViewMaps
@@ -326,7 +350,7 @@ def render_view_maps(run: Run, cameras: Cameras, progress: bool = True, light_ga
         run.weight_maps = _weight_maps(run.train_scene, run.cfg, run.meta)
     with_gain = light_gain and getattr(run.field, "light_head", None) is not None and run.cfg.shading == "pbr"
     keys = (*VIEW_MAP_KEYS, "depth", "opacity")
-    maps: dict[str, list] = {k: [] for k in (*keys, *(("light_gain",) if with_gain else ()))}
+    maps: dict[str, list] = {k: [] for k in (*keys, *(("light_gain", "light_tint") if with_gain else ()))}
     with torch.no_grad():
         for i in tqdm(range(len(cameras)), desc="rendering views for the bake", file=sys.stderr, unit="view",
                       disable=not progress):
@@ -336,8 +360,9 @@ def render_view_maps(run: Run, cameras: Cameras, progress: bool = True, light_ga
             if with_gain:
                 with light_residual_off(run):
                     g = run.render(cameras, i)
-                maps["light_gain"].append(light_gain_map(o.diffuse + o.specular, g.diffuse + g.specular,
-                                                         o.opacity).float().cpu())
+                shaded, shaded_global = o.diffuse + o.specular, g.diffuse + g.specular
+                maps["light_gain"].append(light_gain_map(shaded, shaded_global, o.opacity).float().cpu())
+                maps["light_tint"].append(light_tint_map(shaded, shaded_global, o.opacity).float().cpu())
     stacked = {k: torch.stack(v) for k, v in maps.items()}
     stacked["albedo"] = stacked["albedo"].clamp(0, 1)
     return ViewMaps(cameras.to("cpu"), stacked.pop("depth"), stacked.pop("opacity"), stacked)

@@ -63,18 +63,28 @@ void RE_IndirectSpecular_Dars( const in vec3 radiance, const in vec3 irradiance,
 #define RE_IndirectSpecular RE_IndirectSpecular_Dars
 `;
 
-function useDarsShading(material) {
+// tint: the GLB's light-tint texture (extras.dars.light_tint: the colour of the field's per-point light, linear,
+// stored / scale) or null; it multiplies the shaded colour with the occlusion, as the moderngl preview does.
+function useDarsShading(material, tint) {
   material.onBeforeCompile = (shader) => {
     shader.uniforms.u_dfg = { value: dfgTexture };
+    shader.uniforms.u_light_tint = { value: tint ? tint.texture : null };
+    shader.uniforms.u_tint_scale = { value: tint ? tint.scale : 1.0 };
+    const tintGlsl = tint
+      ? '\n#ifdef USE_AOMAP\nvec3 darsTint = texture2D( u_light_tint, vAoMapUv ).rgb * u_tint_scale;\n'
+        + 'reflectedLight.indirectDiffuse *= darsTint;\nreflectedLight.indirectSpecular *= darsTint;\n#endif'
+      : '';
     shader.fragmentShader = shader.fragmentShader
+      .replace('void main() {', 'uniform sampler2D u_light_tint;\nuniform float u_tint_scale;\nvoid main() {')
       .replace('#include <lights_physical_pars_fragment>', DARS_PARS)
       .replace('#include <roughnessmap_fragment>', '#include <roughnessmap_fragment>\ndarsRoughness = roughnessFactor;')
       // three scales only the diffuse SH light by the occlusion (ORM red) when there is no envMap; dars bakes the
       // field's per-point light gain into it and scales both, as the moderngl preview does
       .replace('#include <aomap_fragment>',
-        '#include <aomap_fragment>\n#ifdef USE_AOMAP\nreflectedLight.indirectSpecular *= ambientOcclusion;\n#endif');
+        '#include <aomap_fragment>\n#ifdef USE_AOMAP\nreflectedLight.indirectSpecular *= ambientOcclusion;\n#endif'
+        + tintGlsl);
   };
-  material.customProgramCacheKey = () => 'dars-shading';
+  material.customProgramCacheKey = () => (tint ? 'dars-shading-tint' : 'dars-shading');
   material.needsUpdate = true;
 }
 
@@ -206,10 +216,17 @@ async function main() {
   });
 
   const gltf = await new GLTFLoader().loadAsync(`./${cfg.glb}`);
+  const tintRef = ((gltf.parser.json.extras || {}).dars || {}).light_tint;
+  let tint = null;
+  if (tintRef && Number.isInteger(tintRef.index)) {
+    const texture = await gltf.parser.getDependency('texture', tintRef.index);
+    texture.colorSpace = THREE.NoColorSpace;  // linear
+    tint = { texture, scale: Number(tintRef.scale) || 1.0 };
+  }
   let meshes = 0;
   gltf.scene.traverse((object) => {
     if (object.isMesh && object.material && object.material.isMeshStandardMaterial) {
-      if (params.get('shading') !== 'three') useDarsShading(object.material);
+      if (params.get('shading') !== 'three') useDarsShading(object.material, tint);
       meshes += 1;
     }
   });
@@ -222,7 +239,9 @@ async function main() {
     controls.update();
     renderer.render(scene, camera);
     frames += 1;
-    if (frames === 2) Object.assign(window.__dars, { ready: true, meshes, xr: renderer.xr.enabled, renderer });
+    if (frames === 2) {
+      Object.assign(window.__dars, { ready: true, meshes, xr: renderer.xr.enabled, renderer, lightTint: !!tint });
+    }
   });
 }
 
