@@ -263,15 +263,6 @@ def export_gltf(uvmesh, textures, path: str | Path, sh=None, *, semantics: Liter
         "occlusionTexture": {"index": 1, "strength": 1.0},
         "doubleSided": bool(cfg.double_sided),
     }
-    tint = getattr(textures, "light_tint", None)
-    if tint is not None:
-        from toolkit.bake import LIGHT_TINT_SCALE
-
-        gltf_textures.append({"sampler": 0, "source": add_image(tint, "light_tint")})
-        light_tint = {"index": len(gltf_textures) - 1, "texCoord": 0, "scale": LIGHT_TINT_SCALE,
-                      "meaning": "the colour of the field's per-point light (toolkit.train.run.light_tint_map), linear "
-                                 "RGB / scale; a viewer multiplies its shaded colour (diffuse and specular, with the "
-                                 "occlusion) by texel x scale. Viewers that do not read it show the grey occlusion."}
 
     dars_extras: dict[str, Any] = {
         "up_axis": "glTF +y; converted from the dars world (+z up) by (x, y, z) -> (x, z, -y)",
@@ -280,8 +271,16 @@ def export_gltf(uvmesh, textures, path: str | Path, sh=None, *, semantics: Liter
         "semantics": "one primitive per class (primitive extras.semantic_class)" if labels is not None else "none",
         "texture_defaults": list(getattr(textures, "defaults", ())),
     }
+    tint = getattr(textures, "light_tint", None)
     if tint is not None:
-        dars_extras["light_tint"] = light_tint
+        from toolkit.bake import LIGHT_TINT_SCALE
+
+        gltf_textures.append({"sampler": 0, "source": add_image(tint, "light_tint")})
+        dars_extras["light_tint"] = {
+            "index": len(gltf_textures) - 1, "texCoord": 0, "scale": LIGHT_TINT_SCALE,
+            "meaning": "the colour of the field's per-point light (toolkit.train.run.light_tint_map), linear RGB / "
+                       "scale; a viewer multiplies its shaded colour (diffuse and specular, with the occlusion) by "
+                       "texel x scale. Viewers that do not read it show the grey occlusion."}
     root: dict[str, Any] = {
         "asset": {"version": "2.0", "generator": "dars toolkit (export/gltf.py)"},
         "scene": 0,

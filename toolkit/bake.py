@@ -561,10 +561,7 @@ def bake_pbr_textures(uvmesh: UVMesh, material_fn: MaterialFn, cfg: BakeConfig =
             if "light_tint" in out:
                 if tint is None:
                     tint = np.ones((n_tex, 3), np.float32)
-                a = _to_numpy(out["light_tint"], "light_tint").astype(np.float32)
-                if a.size != m * 3:
-                    raise ShapeError(f"material_fn()['light_tint']: expected shape [{m}, 3], got {list(a.shape)}")
-                tint[s:e] = np.clip(a.reshape(m, 3), 0.0, LIGHT_TINT_SCALE)
+                tint[s:e] = np.clip(_shaped(out, "light_tint", (m, 3)), 0.0, LIGHT_TINT_SCALE)
             if cfg.ao_samples > 0:
                 occl[s:e] *= _ambient_occlusion(ao_scene, pos, n, cfg.ao_samples, ao_dist, seed=cfg.seed + s)
             bar.update(m)
@@ -615,10 +612,15 @@ def _get(out: Mapping, key: str, shape: tuple[int, ...], missing: set[str]) -> n
     if key not in out:
         missing.add(key)
         return np.broadcast_to(np.asarray(DEFAULT_MATERIAL[key], np.float32), shape)
+    return np.clip(_shaped(out, key, shape), 0.0, 1.0)
+
+
+def _shaped(out: Mapping, key: str, shape: tuple[int, ...]) -> np.ndarray:
+    """``out[key]`` as float32 of ``shape``; ShapeError naming the key when its size differs."""
     a = _to_numpy(out[key], key).astype(np.float32)
     if a.size != math.prod(shape):
         raise ShapeError(f"material_fn()['{key}']: expected shape {list(shape)}, got {list(a.shape)}")
-    return np.clip(a.reshape(shape), 0.0, 1.0)
+    return a.reshape(shape)
 
 
 def _ambient_occlusion(scene, pos: np.ndarray, n: np.ndarray, samples: int, distance: float, seed: int) -> np.ndarray:

@@ -290,13 +290,17 @@ def light_gain_map(shaded: torch.Tensor, shaded_global: torch.Tensor, opacity: t
         shaded, shaded_global: float [..., 3] composited diffuse + specular with and without the residual.
         opacity: float [...] the pixels' opacity.
     """
-    from ..metrics import REC709_LUMA
-
-    w = torch.tensor(REC709_LUMA, dtype=shaded.dtype, device=shaded.device)
-    num, den = shaded @ w, shaded_global @ w
+    num, den = _luminance(shaded), _luminance(shaded_global)
     ok = (opacity >= min_opacity) & (den > 1e-4)
     gain = torch.where(ok, num / den.clamp_min(1e-4), torch.ones_like(num))
     return gain.clamp(0.0, LIGHT_GAIN_MAX)
+
+
+def _luminance(rgb: torch.Tensor) -> torch.Tensor:
+    """Rec. 709 luminance [...] of linear ``rgb`` [..., 3]."""
+    from ..metrics import REC709_LUMA
+
+    return rgb @ torch.tensor(REC709_LUMA, dtype=rgb.dtype, device=rgb.device)
 
 
 def light_tint_map(shaded: torch.Tensor, shaded_global: torch.Tensor, opacity: torch.Tensor,
@@ -311,10 +315,8 @@ def light_tint_map(shaded: torch.Tensor, shaded_global: torch.Tensor, opacity: t
     (an RGB residual, ``FieldConfig.light_residual_colour="rgb"``, tints a wall warmer under a lamp or bluer under a
     window); the GLB's occlusion channel can only hold the gain."""
     from ..bake import LIGHT_TINT_SCALE
-    from ..metrics import REC709_LUMA
 
-    w = torch.tensor(REC709_LUMA, dtype=shaded.dtype, device=shaded.device)
-    num, den = shaded @ w, shaded_global @ w
+    num, den = _luminance(shaded), _luminance(shaded_global)
     ok = (opacity >= min_opacity) & (den > 1e-4) & (num > 1e-4)
     per = shaded / shaded_global.clamp_min(1e-4)
     tint = per / (num / den.clamp_min(1e-4)).clamp_min(1e-4)[..., None]

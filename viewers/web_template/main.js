@@ -68,14 +68,16 @@ void RE_IndirectSpecular_Dars( const in vec3 radiance, const in vec3 irradiance,
 function useDarsShading(material, tint) {
   material.onBeforeCompile = (shader) => {
     shader.uniforms.u_dfg = { value: dfgTexture };
-    shader.uniforms.u_light_tint = { value: tint ? tint.texture : null };
-    shader.uniforms.u_tint_scale = { value: tint ? tint.scale : 1.0 };
-    const tintGlsl = tint
-      ? '\n#ifdef USE_AOMAP\nvec3 darsTint = texture2D( u_light_tint, vAoMapUv ).rgb * u_tint_scale;\n'
-        + 'reflectedLight.indirectDiffuse *= darsTint;\nreflectedLight.indirectSpecular *= darsTint;\n#endif'
-      : '';
+    let tintGlsl = '';
+    if (tint) {
+      shader.uniforms.u_light_tint = { value: tint.texture };
+      shader.uniforms.u_tint_scale = { value: tint.scale };
+      shader.fragmentShader = shader.fragmentShader
+        .replace('void main() {', 'uniform sampler2D u_light_tint;\nuniform float u_tint_scale;\nvoid main() {');
+      tintGlsl = '\n#ifdef USE_AOMAP\nvec3 darsTint = texture2D( u_light_tint, vAoMapUv ).rgb * u_tint_scale;\n'
+        + 'reflectedLight.indirectDiffuse *= darsTint;\nreflectedLight.indirectSpecular *= darsTint;\n#endif';
+    }
     shader.fragmentShader = shader.fragmentShader
-      .replace('void main() {', 'uniform sampler2D u_light_tint;\nuniform float u_tint_scale;\nvoid main() {')
       .replace('#include <lights_physical_pars_fragment>', DARS_PARS)
       .replace('#include <roughnessmap_fragment>', '#include <roughnessmap_fragment>\ndarsRoughness = roughnessFactor;')
       // three scales only the diffuse SH light by the occlusion (ORM red) when there is no envMap; dars bakes the
@@ -239,9 +241,7 @@ async function main() {
     controls.update();
     renderer.render(scene, camera);
     frames += 1;
-    if (frames === 2) {
-      Object.assign(window.__dars, { ready: true, meshes, xr: renderer.xr.enabled, renderer, lightTint: !!tint });
-    }
+    if (frames === 2) Object.assign(window.__dars, { ready: true, meshes, xr: renderer.xr.enabled, renderer });
   });
 }
 
