@@ -10,15 +10,18 @@ backdrop of export-asset (``backdrop``: the field's rendered colour wherever the
 the background map elsewhere; :mod:`toolkit.backdrop`). These four have no light occlusion
 (``AssetConfig.light_occlusion=False``) and the field's point normals in the normal map (``normals_from="points"``):
 the GLB of earlier versions. ``occlusion``: the backdrop GLB with the field's per-point light gain in its occlusion
-channel and the SH scaled to match; ``view_normals`` (export-asset's default): that, with the normal map from the
-field's rendered normals at the training views. Each GLB's moderngl preview is scored against the test photos
+channel (and its colour in the light tint) and the SH scaled to match; ``view_normals``: that, with the normal map
+from the field's rendered normals at the training views; ``light_fit`` (export-asset's default): that, with the
+occlusion and tint fitted so that the viewer's shading of the baked textures shows the field's colour at the
+training views (``AssetConfig.light_fit``, :func:`toolkit.viewbake.fit_light`). Each GLB's moderngl preview is scored against the test photos
 beside the field's own render (``bench_train._assets_depth_and_preview``: all test views, the field rendered once for both; the depth error where
 the scene has ground-truth depth; each GLB's albedo against the ground truth where the scene has it, beside the
 field's). Prints one row per run and bake, the gap to the field, and the mean and worst gap over the runs, and writes
 ``OUT/runK/compare.png`` per run to look at: photo | field | each GLB's preview on three test views. Also prints the
 field's PSNR with its per-point light residual switched off (the global SH only: what a GLB can carry).
 
-Usage: ``python bench/bench_bake.py --run RUN [--run RUN2 ...] [--threads 2] [--view-rays 300000]``. Without
+Usage: ``python bench/bench_bake.py --run RUN [--run RUN2 ...] [--threads 2] [--view-rays 2000000]`` (export-asset's
+defaults: 2048² textures, every pixel of up to 2M; ``--view-rays 300000`` for the GLBs before 2026-12-03). Without
 ``--run`` it first trains the bundled sample for 300 steps (``bench/out/bake/sample_run``, a few minutes).
 """
 
@@ -87,13 +90,16 @@ def bake_both(run: Path, out: Path, threads: int, view_rays: int, min_opacity: f
         export_gltf(uvmesh, textures, out / name / "scene.glb", sh=field.sh, extras=extras)
         baked[name] = {**baked["views"], "backdrop_texels_seen": float((backdrop.visibility > 0).mean()),
                        "backdrop_mean_visibility": float(backdrop.visibility.mean())}
-    # occlusion: the backdrop GLB with the field's light gain in its occlusion channel, SH times s; view_normals
-    # (export-asset's default): that, with the normal map from the field's rendered normals
+    # occlusion: the backdrop GLB with the field's light gain in its occlusion channel (and its tint), SH times s;
+    # view_normals: that, with the normal map from the field's rendered normals; light_fit (export-asset's
+    # default): that, with the occlusion and tint fitted so the viewer's shading shows the field's colour
     if "backdrop" in baked and "light_gain" in maps.values:
         occ_cfg = replace(cfg, light_occlusion=True)
-        for name, glb_cfg in (("occlusion", occ_cfg), ("view_normals", replace(occ_cfg, normals_from="views"))):
+        view_cfg = replace(occ_cfg, normals_from="views")
+        for name, glb_cfg, fit_sh in (("occlusion", occ_cfg, None), ("view_normals", view_cfg, None),
+                                      ("light_fit", view_cfg, field.sh)):
             t0 = time.perf_counter()
-            uvmesh, textures, bake = bake_mesh(mesh, field.material_fn, glb_cfg, views=maps)
+            uvmesh, textures, bake = bake_mesh(mesh, field.material_fn, glb_cfg, views=maps, sh=fit_sh)
             sh = field.sh * bake["light_scale"]
             backdrop = build_backdrop(field, maps, glb_cfg, uvmesh)
             extras = Asset(mesh, uvmesh, textures, sh, {**stats, "bake": bake}, backdrop).gltf_extras()
@@ -164,7 +170,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--run", action="append", default=[], help="a training run (repeat for several)")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--view-rays", type=int, default=300_000)
+    ap.add_argument("--view-rays", type=int, default=2_000_000)
     ap.add_argument("--depth-min-opacity", type=float, default=0.5, help="export-asset's option of that name")
     ap.add_argument("--min-component", type=float, default=0.05, help="export-asset's option of that name")
     ap.add_argument("--out", default=str(ROOT / "bench" / "out" / "bake"))

@@ -224,3 +224,98 @@ def test_bake_mesh_bakes_the_light_tint_texture():
     assert np.allclose(got.mean(0), [1.3, 1.0, 0.7], atol=0.01)  # A and B see the floor
     for cfg in (AssetConfig(texture=64, light_tint=False), AssetConfig(texture=64, light_occlusion=False)):
         assert bake_mesh(_floor_quad(), _blue, cfg, views=maps)[1].light_tint is None
+
+
+def _lit_maps(rgb_a, rgb_b=None):
+    """:func:`_maps` with the field's colour and a grey albedo: view A shows ``rgb_a`` everywhere; B shows ``rgb_b``
+    (None: B, like C and D, sees nothing: opacity 0). Light gain and tint 1 (the field's light adds nothing)."""
+    m = _maps()
+    opacity = m.opacity.clone()
+    opacity[2:] = 0.0
+    if rgb_b is None:
+        opacity[1] = 0.0
+    rgb = torch.zeros(4, SIZE, SIZE, 3)
+    rgb[0] = torch.tensor(rgb_a)
+    rgb[1] = torch.tensor(rgb_b if rgb_b is not None else (0.0, 0.0, 0.0))
+    albedo = torch.full((4, SIZE, SIZE, 3), 0.5)
+    return ViewMaps(m.cameras, m.depth, opacity, {**m.values, "albedo": albedo, "rgb": rgb, "light_gain": torch.ones(4, SIZE, SIZE),
+                                                   "light_tint": torch.ones(4, SIZE, SIZE, 3)})
+
+
+def _sh():
+    from toolkit.sh import SH_C0
+
+    sh = torch.zeros(9, 3)
+    sh[0] = torch.tensor([1.2, 1.0, 0.8]) / SH_C0  # a warm constant radiance
+    sh[2] = torch.tensor([0.3, 0.3, 0.3])  # brighter from above (+z)
+    return sh
+
+
+def test_fit_light_makes_the_viewer_shading_show_the_field_colour():
+    """With one view, m × the viewer's shading towards that camera is the field's colour there, channel by channel;
+    with two, m lies between the two one-view fits; points no view sees get 1."""
+    from toolkit.shading import shade_pbr
+    from toolkit.viewbake import FIT_WEIGHT_EXPONENT, fit_light
+
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.2, -0.3, 0.0], [9.0, 9.0, 0.0]])
+    n = len(pts)
+    material = {"albedo": torch.tensor([0.5, 0.4, 0.3]).expand(n, 3), "roughness": torch.full((n,), 0.6),
+                "metallic": torch.zeros(n), "normal": torch.tensor([0.0, 0.0, 1.0]).expand(n, 3)}
+    maps = _lit_maps((0.3, 0.2, 0.1))
+    m, count = fit_light(pts, material, maps, _sh())
+    assert count.tolist() == [1, 1, 0]
+    v = torch.nn.functional.normalize(maps.cameras.origins[0] - pts[:2], dim=-1)
+    shaded = shade_pbr(material["albedo"][:2], material["roughness"][:2], material["metallic"][:2],
+                       material["normal"][:2], v, _sh()).colour
+    assert torch.allclose(m[:2] * shaded, torch.tensor([0.3, 0.2, 0.1]).expand(2, 3), atol=1e-5)
+    assert torch.equal(m[2], torch.ones(3))
+    m_b = fit_light(pts, material, _lit_maps((0.6, 0.4, 0.2), (0.6, 0.4, 0.2)), _sh())[0]  # as if B alone
+    both = fit_light(pts, material, _lit_maps((0.3, 0.2, 0.1), (0.6, 0.4, 0.2)), _sh())[0]
+    assert ((both[:2] > m[:2]) & (both[:2] < m_b[:2])).all()
+    # weighted by the sRGB slope at each view's colour: the darker view counts more than in a plain least squares
+    two = _lit_maps((0.3, 0.2, 0.1), (0.6, 0.4, 0.2))
+    p_v = [shade_pbr(material["albedo"][:2], material["roughness"][:2], material["metallic"][:2], material["normal"][:2],
+                     torch.nn.functional.normalize(two.cameras.origins[i] - pts[:2], dim=-1), _sh()).colour
+           for i in (0, 1)]
+    f_v = [torch.tensor([0.3, 0.2, 0.1]), torch.tensor([0.6, 0.4, 0.2])]
+    plain = sum(p * f for p, f in zip(p_v, f_v)) / sum(p * p for p in p_v)
+    weighted = (sum(f ** FIT_WEIGHT_EXPONENT * p * f for p, f in zip(p_v, f_v))
+                / sum(f ** FIT_WEIGHT_EXPONENT * p * p for p, f in zip(p_v, f_v)))
+    assert torch.allclose(both[:2], weighted, atol=1e-5) and (both[:2] < plain - 1e-3).all()
+    # a field normal facing away from the mesh is folded onto its tangent plane, as the normal map stores it
+    down = dict(material, normal=torch.tensor([0.6, 0.0, -0.8]).expand(n, 3))
+    folded = dict(material, normal=torch.tensor([1.0, 0.0, 0.0]).expand(n, 3))
+    up = torch.tensor([0.0, 0.0, 1.0]).expand(n, 3)
+    assert torch.allclose(fit_light(pts, down, maps, _sh(), mesh_normals=up)[0],
+                          fit_light(pts, folded, maps, _sh())[0], atol=1e-5)
+    with pytest.raises(ConfigError, match="colour"):
+        fit_light(pts, material, _maps(), _sh())
+
+
+def test_bake_mesh_fits_the_occlusion_and_tint_to_the_field_colour():
+    """Given the run's SH and views holding the field's colour, the baked occlusion × tint make the viewer's shading
+    of the baked floor show that colour (here darker and warmer than the SH shades it, while the field's own gain and
+    tint say 1); without the SH, or with ``light_fit=False``, the field's gain and tint are baked."""
+    from toolkit.asset import AssetConfig, bake_mesh
+    from toolkit.bake import LIGHT_TINT_SCALE
+    from toolkit.io import srgb_to_linear
+    from toolkit.shading import shade_pbr
+
+    target = torch.tensor([0.12, 0.06, 0.02])
+    maps = _lit_maps(tuple(target.tolist()))
+    _, tex, stats = bake_mesh(_floor_quad(), _blue, AssetConfig(texture=64), views=maps, sh=_sh())
+    assert stats["light_fit"] is True and stats["light_scale"] == 1.0
+    texels = tex.mask
+    albedo = torch.as_tensor(srgb_to_linear(tex.base_color[texels] / 255.0), dtype=torch.float32)
+    orm = torch.as_tensor(tex.orm[texels] / 255.0, dtype=torch.float32)
+    tint = torch.as_tensor(tex.light_tint[texels] / 255.0 * LIGHT_TINT_SCALE, dtype=torch.float32)
+    k = len(albedo)
+    v = torch.nn.functional.normalize(maps.cameras.origins[0] - torch.zeros(3), dim=-1).expand(k, 3)  # ~ 14° off
+    shaded = shade_pbr(albedo, orm[:, 1], orm[:, 2], torch.tensor([0.0, 0.0, 1.0]).expand(k, 3), v, _sh()).colour
+    shown = shaded * orm[:, :1] * tint
+    assert torch.allclose(shown.mean(0), target, rtol=0.06)
+    assert orm[:, 0].max() < 0.5 and (tint[:, 0] > tint[:, 2]).all()
+    for kw, cfg in (({}, AssetConfig(texture=64)), ({"sh": _sh()}, AssetConfig(texture=64, light_fit=False))):
+        _, tex, stats = bake_mesh(_floor_quad(), _blue, cfg, views=maps, **kw)
+        assert stats["light_fit"] is False and (tex.orm[tex.mask][:, 0] == 255).all()
+        assert np.allclose(tex.light_tint[tex.mask] / 255.0 * LIGHT_TINT_SCALE, 1.0, atol=1 / 255)

@@ -80,8 +80,10 @@ class AssetConfig:
     depth_rays: int = 1_000_000
     """``tsdf``: at most this many depth rays over all training cameras; every camera is kept and the depth maps
     are rendered on one smaller pixel grid when the photos hold more pixels (:func:`depth_cameras`)."""
-    texture: int = 1024
-    """Texture size in texels (square)."""
+    texture: int = 2048
+    """Texture size in texels (square). 2048: a room's mesh of ~100k faces unwraps into thousands of small charts,
+    and their padding leaves 30-40 % of the atlas covered, ~15 % at 1024 (README, "Detail and light fitted to the
+    viewer")."""
     supersample: int = 1
     """Bake at this multiple of ``texture`` and box-filter down (1 or 2)."""
     ao_samples: int = 0
@@ -92,9 +94,10 @@ class AssetConfig:
     off its surface; README, "The GLB against its field: the view-projected bake"); texels no view sees, and
     fields without a renderer, fall back to ``points``. ``points``: the field's materials queried at each texel's
     surface point."""
-    view_rays: int = 300_000
+    view_rays: int = 2_000_000
     """``views``: at most this many rendered pixels over all training views (larger photos are rendered on a
-    smaller pixel grid, :func:`depth_cameras`)."""
+    smaller pixel grid, :func:`depth_cameras`): every pixel of 120 photos of 128 x 128. The texels take their
+    detail from these renders, and ``light_fit`` its targets."""
     view_tolerance: float = 0.1
     """``views``: a view sees a texel when the texel's depth is within this fraction of the rendered depth."""
     normals_from: Literal["views", "points"] = "views"
@@ -113,6 +116,12 @@ class AssetConfig:
     :func:`toolkit.train.run.light_tint_map`, mean over the views that see it) into a light-tint texture that the
     GLB names in ``extras.dars.light_tint``; our viewers (``dars view``, the WebXR page) multiply the shaded colour
     by it, other glTF viewers ignore it. Off: no tint texture (the GLB of earlier versions)."""
+    light_fit: bool = True
+    """With ``light_occlusion``: fit each texel's occlusion and light tint so that the viewer's own shading of the
+    baked textures reproduces the field's colour at the views that see it (:func:`toolkit.viewbake.fit_light`),
+    instead of taking the field's light gain and tint as they are: the texture's mean albedo and the viewer's SH
+    shading differ from the field's composited ones, and the fit takes up that mean difference. Off: the field's
+    gain and tint (the GLB of earlier versions)."""
     backdrop: bool = True
     """Store a backdrop in the GLB (:mod:`toolkit.backdrop`: what the viewers draw where the mesh is not — a
     gallery's sky, the white behind an object, the holes in the mesh): the field's rendered colour in the directions
@@ -380,8 +389,39 @@ def _with_occlusion(texel_fn, scale: float):
     return fn
 
 
+def _with_fitted_light(texel_fn, views, sh, scale: float, tolerance: float, tint: bool):
+    """``texel_fn`` (after :func:`_with_occlusion`) with the occlusion (and, with ``tint``, the light tint) of every
+    texel a view sees replaced by the light the viewer needs there (:func:`toolkit.viewbake.fit_light`): the fitted
+    multiplier m is split into occlusion = luminance(m) / ``scale`` clamped to [0, 1] and tint = m / (occlusion ×
+    ``scale``) clamped to [0, LIGHT_TINT_SCALE] (the tint takes up what the occlusion clamps)."""
+    import torch
+
+    from .bake import DEFAULT_MATERIAL, LIGHT_TINT_SCALE
+    from .train.run import _luminance
+    from .viewbake import fit_light
+
+    def fn(points, normals=None):
+        out = dict(texel_fn(points, normals))
+        n = torch.as_tensor(points).reshape(-1, 3).shape[0]
+        material = {k: out[k] if k in out else torch.as_tensor(DEFAULT_MATERIAL[k], dtype=torch.float32).expand(n)
+                    for k in ("roughness", "metallic")}
+        material["albedo"] = out["albedo"]
+        material["normal"] = out["normal"] if "normal" in out else normals
+        m, count = fit_light(points, material, views, sh, tolerance, mesh_normals=normals)
+        seen = count > 0
+        occ = (_luminance(m) / scale).clamp(0.0, 1.0)
+        out["occlusion"] = torch.where(seen, occ, torch.as_tensor(out["occlusion"], dtype=torch.float32).reshape(n))
+        if tint:
+            t = torch.where(occ[:, None] > 1e-4, m / (occ * scale).clamp_min(1e-4)[:, None], torch.ones_like(m))
+            base = torch.as_tensor(out.get("light_tint", torch.ones(n, 3)), dtype=torch.float32).reshape(n, 3)
+            out["light_tint"] = torch.where(seen[:, None], t.clamp(0.0, LIGHT_TINT_SCALE), base)
+        return out
+
+    return fn
+
+
 def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=None,
-              views=None) -> tuple[UVMesh, PBRTextures, dict]:
+              views=None, sh=None) -> tuple[UVMesh, PBRTextures, dict]:
     """The bake half: UV-unwrap ``mesh``, label its faces and bake PBR textures from ``material_fn``; ``log``: an
     optional callable told when the unwrap (xatlas, which reports no progress) starts and ends.
 
@@ -389,6 +429,8 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
         views: :class:`toolkit.viewbake.ViewMaps` (:func:`view_maps`): the albedo comes from the views that see each
             texel (:func:`toolkit.viewbake.view_projected`), and, when they hold ``light_gain`` and
             ``cfg.light_occlusion`` is on, the occlusion too; None: point queries only.
+        sh: float [9, 3] the run's SH light: with ``cfg.light_fit`` and views holding the field's colour, the
+            occlusion and tint are fitted to it (:func:`_with_fitted_light`).
 
     Returns:
         (uvmesh, textures, statistics ``texture``, ``supersample``, ``uv_vertices``, timings, ``chart_coverage``,
@@ -408,6 +450,7 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
     uvmesh = label_faces(uvmesh, material_fn, device=cfg.device)
     seen: dict = {}
     scale = 1.0
+    fitted = False
     if views is None:
         texel_fn = material_fn
     else:
@@ -420,12 +463,16 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
         texel_fn = view_projected(material_fn, views, cfg.view_tolerance, keys=keys, stats=seen)
         if "light_gain" in keys:
             texel_fn = _with_occlusion(texel_fn, scale)
+            fitted = cfg.light_fit and sh is not None and "rgb" in views.values
+            if fitted:
+                texel_fn = _with_fitted_light(texel_fn, views, sh, scale, cfg.view_tolerance, "light_tint" in keys)
     textures = bake_pbr_textures(uvmesh, texel_fn, BakeConfig(size=cfg.texture, supersample=cfg.supersample,
                                                                ao_samples=cfg.ao_samples, device=cfg.device))
     stats = {"texture": cfg.texture, "supersample": cfg.supersample, "uv_vertices": uvmesh.num_vertices,
              "unwrap_seconds": round(t1 - t0, 3), "bake_seconds": round(time.perf_counter() - t1, 3),
              "chart_coverage": round(float(textures.mask.mean()), 4), "defaults": list(textures.defaults),
-             "bake_from": "points" if views is None else "views", "light_scale": round(scale, 4)}
+             "bake_from": "points" if views is None else "views", "light_scale": round(scale, 4),
+             "light_fit": fitted}
     if views is not None:
         stats["views"] = {"count": len(views.cameras), "width": int(views.cameras.width[0]),
                           "height": int(views.cameras.height[0]), "tolerance": cfg.view_tolerance,
@@ -449,7 +496,7 @@ def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = Asset
     mesh, stats = build_mesh(field, cfg)
     maps = view_maps(field, cfg, log)
     uvmesh, textures, bake_stats = bake_mesh(mesh, field.material_fn, cfg, log=log,
-                                             views=maps if cfg.bake_from == "views" else None)
+                                             views=maps if cfg.bake_from == "views" else None, sh=field.sh)
     stats["bake"] = bake_stats
     backdrop = build_backdrop(field, maps, cfg, uvmesh)
     if backdrop is not None:

@@ -28,7 +28,7 @@ from ._checks import ConfigError, ShapeError
 from .bake import DEFAULT_MATERIAL
 from .cameras import Cameras, project_points
 
-__all__ = ["ViewMaps", "project_views", "view_projected", "VIEW_DEFAULTS"]
+__all__ = ["ViewMaps", "project_views", "view_projected", "fit_light", "FIT_WEIGHT_EXPONENT", "VIEW_DEFAULTS"]
 
 VIEW_DEFAULTS: dict[str, object] = {**DEFAULT_MATERIAL, "light_gain": 1.0, "light_tint": (1.0, 1.0, 1.0)}
 """What a point no view sees gets for a key the material callable lacks: the bake's defaults, and no change of
@@ -87,9 +87,20 @@ def project_views(points: torch.Tensor, maps: ViewMaps, tolerance: float = 0.1, 
     keys = tuple(maps.values) if keys is None else keys
     p = torch.as_tensor(points, dtype=torch.float32).reshape(-1, 3)
     n = p.shape[0]
-    h, w = maps.depth.shape[1:]
     sums = {k: p.new_zeros(n, *maps.values[k].shape[3:]) for k in keys}
     count = torch.zeros(n, dtype=torch.long)
+    for i, idx, r, c in _sightings(p, maps, tolerance, min_opacity):
+        for k in keys:
+            sums[k].index_add_(0, idx, maps.values[k][i, r, c].to(p))
+        count.index_add_(0, idx, torch.ones_like(idx))
+    seen = count.clamp_min(1).to(p)
+    return {k: v / (seen if v.dim() == 1 else seen[:, None]) for k, v in sums.items()}, count
+
+
+def _sightings(p: torch.Tensor, maps: ViewMaps, tolerance: float, min_opacity: float):
+    """Per view ``i`` that sees any of the points ``p`` [N, 3] (:func:`project_views`' test): ``(i, idx, row, col)``,
+    the indices of the points it sees and their pixels."""
+    h, w = maps.depth.shape[1:]
     for i in range(len(maps.cameras)):
         uv, z = project_points(maps.cameras, i, p)
         col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()
@@ -97,12 +108,76 @@ def project_views(points: torch.Tensor, maps: ViewMaps, tolerance: float = 0.1, 
         r, c = row[idx], col[idx]
         d = maps.depth[i, r, c]
         ok = ((z[idx] - d).abs() < tolerance * d.clamp_min(0.1)) & (maps.opacity[i, r, c] >= min_opacity)
-        idx, r, c = idx[ok], r[ok], c[ok]
-        for k in keys:
-            sums[k].index_add_(0, idx, maps.values[k][i, r, c].to(p))
+        if bool(ok.any()):
+            yield i, idx[ok], r[ok], c[ok]
+
+
+FIT_WEIGHT_EXPONENT = 1 / 2.4 - 1
+""":func:`fit_light` weighs a sighting of colour F by F ** this (−0.583: the sRGB encoding's slope). Chosen between
+0 (a linear least-squares error) and twice this (the error on displayed colour) on two scenes, one seed each, and
+checked on a third (README, "Detail and light fitted to the viewer"): w = 1 lets the bright sightings decide and
+costs gallery 1000007 0.6 dB; the displayed error lets the darkest ones (a neighbour's shadow, an edge) decide and
+costs the bundled sample 0.3 dB."""
+
+
+def fit_light(points: torch.Tensor, material: dict, maps: ViewMaps, sh: torch.Tensor, tolerance: float = 0.1,
+              min_opacity: float = 0.5, mesh_normals: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The per-point RGB light multiplier ``m`` that makes a viewer's own shading reproduce the field's colour at
+    the views that see each point.
+
+    A GLB viewer shows ``clamp(m · shade_pbr(albedo, roughness, metallic, n, v, SH).colour)`` (``dars view``, the
+    WebXR page: occlusion × light tint). Per point and channel, ``m`` minimises Σ_v w_v (m P_v − F_v)² over the
+    views ``v`` that see it (:func:`project_views`' test), with ``P_v`` that shading towards camera ``v``, ``F_v``
+    the field's rendered linear colour (``maps.values["rgb"]``) there and ``w_v`` = F_v^:data:`FIT_WEIGHT_EXPONENT`
+    (F clamped to [1e-3, 1]): ``m = Σ w P F / Σ w P²``. That weight is the slope of the sRGB encoding at F (up to a
+    constant), halfway between a linear error (w = 1) and a displayed one (the slope squared); see
+    :data:`FIT_WEIGHT_EXPONENT` for why. It takes up whatever
+    the grey occlusion gain and the field's light tint leave: the light the field fitted that the SH cannot express,
+    and the mean difference between the texture's shading and the field's composited one.
+
+    Args:
+        points: float [N, 3] world points, metres.
+        material: the texel's ``albedo`` [N, 3] (linear), ``roughness`` [N], ``metallic`` [N] and ``normal``
+            [N, 3] (world), as the viewer will read them.
+        maps: the views, holding ``rgb``.
+        sh: float [9, 3] the SH light the viewer shades with (SPEC frame), before the multiplier.
+        tolerance, min_opacity: :func:`project_views`.
+        mesh_normals: float [N, 3] the mesh normals: a field normal facing away from one is folded onto its tangent
+            plane, as the normal map stores it (:func:`toolkit.bake.bake_pbr_textures`).
+
+    Returns:
+        (m, count): float [N, 3] (1 where no view sees the point or the shading is black), int [N] views.
+    """
+    from .shading import shade_pbr
+
+    if "rgb" not in maps.values:
+        raise ConfigError(f"fit_light needs the field's colour in the view maps; they hold only {sorted(maps.values)}")
+    p = torch.as_tensor(points, dtype=torch.float32).reshape(-1, 3)
+    n = p.shape[0]
+    albedo = torch.as_tensor(material["albedo"], dtype=torch.float32).reshape(n, 3).clamp(0.0, 1.0)
+    rough = torch.as_tensor(material["roughness"], dtype=torch.float32).reshape(n).clamp(0.0, 1.0)
+    metal = torch.as_tensor(material["metallic"], dtype=torch.float32).reshape(n).clamp(0.0, 1.0)
+    nrm = torch.as_tensor(material["normal"], dtype=torch.float32).reshape(n, 3)
+    if mesh_normals is not None:
+        mn = torch.nn.functional.normalize(torch.as_tensor(mesh_normals, dtype=torch.float32).reshape(n, 3), dim=-1)
+        back = (nrm * mn).sum(-1, keepdim=True)
+        nrm = torch.where(back < 0, nrm - back * mn, nrm)
+    nrm = torch.nn.functional.normalize(nrm, dim=-1, eps=1e-8)
+    sh = torch.as_tensor(sh, dtype=torch.float32).reshape(9, 3)
+    num, den = p.new_zeros(n, 3), p.new_zeros(n, 3)
+    count = torch.zeros(n, dtype=torch.long)
+    origins = maps.cameras.origins.to(p)
+    for i, idx, r, c in _sightings(p, maps, tolerance, min_opacity):
+        v = torch.nn.functional.normalize(origins[i] - p[idx], dim=-1, eps=1e-8)
+        shaded = shade_pbr(albedo[idx], rough[idx], metal[idx], nrm[idx], v, sh).colour
+        target = maps.values["rgb"][i, r, c].to(p)
+        wt = target.clamp(1e-3, 1.0) ** FIT_WEIGHT_EXPONENT
+        num.index_add_(0, idx, wt * shaded * target)
+        den.index_add_(0, idx, wt * shaded * shaded)
         count.index_add_(0, idx, torch.ones_like(idx))
-    seen = count.clamp_min(1).to(p)
-    return {k: v / (seen if v.dim() == 1 else seen[:, None]) for k, v in sums.items()}, count
+    ok = den > 1e-8
+    m = torch.where(ok, num / den.clamp_min(1e-8), torch.ones_like(num)).clamp_min(0.0)
+    return m, count
 
 
 def view_projected(material_fn: Callable, maps: ViewMaps, tolerance: float = 0.1, min_opacity: float = 0.5,

@@ -64,7 +64,7 @@ def add_mesh_options(q: argparse.ArgumentParser) -> None:
 def add_bake_options(q: argparse.ArgumentParser, backdrop: bool = True) -> None:
     """The bake options; ``backdrop``: also ``--no-backdrop`` and ``--no-light-occlusion`` (commands that write a
     GLB)."""
-    q.add_argument("--texture", type=number(int, min=16, max=16384), default=1024,
+    q.add_argument("--texture", type=number(int, min=16, max=16384), default=2048,
                    help="texture size in texels (square, 16-16384)")
     q.add_argument("--supersample", type=int, default=1, choices=(1, 2), help="bake at 2x and box-filter down")
     q.add_argument("--ao-samples", type=COUNT, default=0, help="rays per texel for ambient occlusion (0 = none)")
@@ -72,7 +72,7 @@ def add_bake_options(q: argparse.ArgumentParser, backdrop: bool = True) -> None:
                    help="views (default): a texel's albedo is the mean of the field's own render over the training "
                         "views that see it (what the photos were fitted to); points: the field queried at the "
                         "texel's surface point (also used where no view sees a texel)")
-    q.add_argument("--view-rays", type=number(int, min=64), default=300_000,
+    q.add_argument("--view-rays", type=number(int, min=64), default=2_000_000,
                    help="--bake-from views: at most this many rendered pixels over all training views")
     q.add_argument("--normals-from", choices=("views", "points"), default="views",
                    help="--bake-from views: views (default): the normal map is the mean of the field's rendered "
@@ -90,6 +90,10 @@ def add_bake_options(q: argparse.ArgumentParser, backdrop: bool = True) -> None:
                        help="--bake-from views: store no light-tint texture (the colour of the field's per-point "
                             "light, which the grey occlusion channel cannot hold; read by dars view and the WebXR "
                             "page, ignored by other glTF viewers)")
+        q.add_argument("--no-light-fit", dest="light_fit", action="store_false",
+                       help="--bake-from views: take the occlusion and light tint from the field's light gain and "
+                            "tint as they are, instead of fitting them so that the viewer's shading of the baked "
+                            "textures reproduces the field's colour at the training views")
         q.add_argument("--no-backdrop", dest="backdrop", action="store_false",
                        help="store no backdrop in the GLB (what the viewers draw where the mesh is not — a gallery's "
                             "sky, the white behind an object, holes in the mesh — taken from the field's renders)")
@@ -135,8 +139,8 @@ def asset_config(args: argparse.Namespace):
 
     names = ("method", "resolution", "level", "level_quantile", "faces", "simplify", "min_component", "min_seen",
              "keep_unseen", "depth_samples", "depth_min_opacity", "depth_rays", "texture", "supersample", "ao_samples",
-             "bake_from", "view_rays", "normals_from", "view_tolerance", "light_occlusion", "light_tint", "backdrop",
-             "device")
+             "bake_from", "view_rays", "normals_from", "view_tolerance", "light_occlusion", "light_tint", "light_fit",
+             "backdrop", "device")
     return AssetConfig(**{k: getattr(args, k) for k in names if hasattr(args, k)})
 
 
