@@ -33,7 +33,7 @@ $DARS render "$OUT/run" --out "$OUT/renders"
 $DARS eval "$OUT/run"
 
 step "5/8 asset: mesh -> UV atlas -> PBR textures -> GLB"
-$DARS export-asset "$OUT/run" --out "$OUT/asset" --resolution 256 --faces 100000 --texture 1024
+$DARS export-asset "$OUT/run" --out "$OUT/asset" --resolution 256 --faces 100000
 
 step "6/8 ONNX: export with parity checks, then one view through ONNX Runtime (no torch)"
 $DARS export-onnx "$OUT/run" --out "$OUT/onnx"
