@@ -238,7 +238,8 @@ def _lit_maps(rgb_a, rgb_b=None):
     rgb[0] = torch.tensor(rgb_a)
     rgb[1] = torch.tensor(rgb_b if rgb_b is not None else (0.0, 0.0, 0.0))
     albedo = torch.full((4, SIZE, SIZE, 3), 0.5)
-    return ViewMaps(m.cameras, m.depth, opacity, {**m.values, "albedo": albedo, "rgb": rgb, "light_gain": torch.ones(4, SIZE, SIZE),
+    return ViewMaps(m.cameras, m.depth, opacity, {**m.values, "albedo": albedo, "rgb": rgb,
+                                                   "light_gain": torch.ones(4, SIZE, SIZE),
                                                    "light_tint": torch.ones(4, SIZE, SIZE, 3)})
 
 
@@ -274,8 +275,9 @@ def test_fit_light_makes_the_viewer_shading_show_the_field_colour():
     assert ((both[:2] > m[:2]) & (both[:2] < m_b[:2])).all()
     # weighted by the sRGB slope at each view's colour: the darker view counts more than in a plain least squares
     two = _lit_maps((0.3, 0.2, 0.1), (0.6, 0.4, 0.2))
-    p_v = [shade_pbr(material["albedo"][:2], material["roughness"][:2], material["metallic"][:2], material["normal"][:2],
-                     torch.nn.functional.normalize(two.cameras.origins[i] - pts[:2], dim=-1), _sh()).colour
+    p_v = [shade_pbr(material["albedo"][:2], material["roughness"][:2], material["metallic"][:2],
+                     material["normal"][:2], torch.nn.functional.normalize(two.cameras.origins[i] - pts[:2], dim=-1),
+                     _sh()).colour
            for i in (0, 1)]
     f_v = [torch.tensor([0.3, 0.2, 0.1]), torch.tensor([0.6, 0.4, 0.2])]
     plain = sum(p * f for p, f in zip(p_v, f_v)) / sum(p * p for p in p_v)

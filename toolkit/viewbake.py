@@ -131,9 +131,9 @@ def fit_light(points: torch.Tensor, material: dict, maps: ViewMaps, sh: torch.Te
     the field's rendered linear colour (``maps.values["rgb"]``) there and ``w_v`` = F_v^:data:`FIT_WEIGHT_EXPONENT`
     (F clamped to [1e-3, 1]): ``m = Σ w P F / Σ w P²``. That weight is the slope of the sRGB encoding at F (up to a
     constant), halfway between a linear error (w = 1) and a displayed one (the slope squared); see
-    :data:`FIT_WEIGHT_EXPONENT` for why. It takes up whatever
-    the grey occlusion gain and the field's light tint leave: the light the field fitted that the SH cannot express,
-    and the mean difference between the texture's shading and the field's composited one.
+    :data:`FIT_WEIGHT_EXPONENT` for why. It takes up whatever the grey occlusion gain and the field's light tint
+    leave: the light the field fitted that the SH cannot express, and the mean difference between the texture's
+    shading and the field's composited one.
 
     Args:
         points: float [N, 3] world points, metres.
