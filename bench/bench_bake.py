@@ -18,7 +18,8 @@ scored against the test photos beside the field's own render (``bench_train._ass
 views, the field rendered once for both; the depth error where the scene has ground-truth depth; each GLB's albedo
 against the ground truth where the scene has it, beside the field's). Prints one row per run and bake, the gap to
 the field, and the mean and worst gap over the runs, and writes ``OUT/runK/compare.png`` per run to look at: photo |
-field | each GLB's preview on three test views. Also prints the field's PSNR with its per-point light residual switched off (the global SH only: what a GLB can carry).
+field | each GLB's preview on three test views. Also prints the field's PSNR with its per-point light residual
+switched off (the global SH only: what a GLB can carry).
 
 Usage: ``python bench/bench_bake.py --run RUN [--run RUN2 ...] [--threads 2] [--view-rays 2000000]`` (export-asset's
 defaults: 2048² textures, every pixel of up to 2M; ``--view-rays 300000`` for the GLBs before 2026-12-03). Without
