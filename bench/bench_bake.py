@@ -18,7 +18,10 @@ scored against the test photos beside the field's own render (``bench_train._ass
 views, the field rendered once for both; the depth error where the scene has ground-truth depth; each GLB's albedo
 against the ground truth where the scene has it, beside the field's). Prints one row per run and bake, the gap to
 the field, and the mean and worst gap over the runs, and writes ``OUT/runK/compare.png`` per run to look at: photo |
-field | each GLB's preview on three test views. Also prints the field's PSNR with its per-point light residual
+field | each GLB's preview on three test views. The ``trilinear`` column scores the same GLB under plain trilinear
+mip-mapping (``PreviewConfig(texture_filter="trilinear")``: what other glTF viewers draw) beside ``dars view``'s
+footprint filter, which knows the blur the view-projected bake put in the textures (the GLB's ``_TEXTURE_BLUR``).
+Also prints the field's PSNR with its per-point light residual
 switched off (the global SH only: what a GLB can carry).
 
 Usage: ``python bench/bench_bake.py --run RUN [--run RUN2 ...] [--threads 2] [--view-rays 2000000]`` (export-asset's
@@ -183,16 +186,18 @@ def main(argv=None) -> int:
     for k, run in enumerate(runs):
         results[str(run)] = bake_both(run, out / f"run{k}", args.threads, args.view_rays,
                                            args.depth_min_opacity, args.min_component)
-    print(f"{'run':<40} {'GLB':<10} {'field dB':>9} {'preview dB':>11} {'gap dB':>7} {'depth m':>8} {'bake s':>7} "
-          f"{'albedo MAE (aligned) vs GT':>27}")
-    names = ("points", "views", "background", "backdrop", "occlusion", "view_normals")
+    print(f"{'run':<40} {'GLB':<12} {'field dB':>9} {'preview dB':>11} {'trilinear':>10} {'gap dB':>7} {'depth m':>8} "
+          f"{'bake s':>7} {'albedo MAE (aligned) vs GT':>27}")
+    names = ("points", "views", "background", "backdrop", "occlusion", "view_normals", "light_fit")
     for run, rows in results.items():
         for name in (n for n in names if n in rows):
             r = rows[name]
             depth, alb = r["depth_error_median_m"], r.get("albedo_vs_gt")
             alb_txt = "-" if alb is None else f"{alb['albedo_mae']:.3f} ({alb['albedo_mae_aligned']:.3f})"
-            print(f"{run[-40:]:<40} {name:<10} {r['field_psnr']:9.2f} {r['preview_psnr']:11.2f} {r['gap_db']:7.2f} "
-                  f"{'-' if depth is None else f'{depth:.3f}':>8} {r['bake_seconds']:7.0f} {alb_txt:>27}")
+            depth_txt = "-" if depth is None else f"{depth:.3f}"
+            print(f"{run[-40:]:<40} {name:<12} {r['field_psnr']:9.2f} {r['preview_psnr']:11.2f} "
+                  f"{r['preview_psnr_trilinear']:10.2f} {r['gap_db']:7.2f} {depth_txt:>8} "
+                  f"{r['bake_seconds']:7.0f} {alb_txt:>27}")
         print(f"{'':<40} photo | field | {' | '.join(n for n in names if n in rows)}: {rows['comparison_png']}")
         if "occlusion" in rows:
             print(f"{'':<40} occlusion: the GLB's SH is the run's x {rows['occlusion']['light_scale']:.3f}")
@@ -209,10 +214,15 @@ def main(argv=None) -> int:
             print(f"{name}: gap to the field mean {sum(gaps) / len(gaps):.2f} dB, worst {max(gaps):.2f} dB "
                   f"over {len(gaps)} run(s) (issue 16's bound: 4 dB)")
     for a, b in (("views", "points"), ("background", "views"), ("backdrop", "views"), ("backdrop", "background"),
-                 ("occlusion", "backdrop"), ("view_normals", "occlusion")):
+                 ("occlusion", "backdrop"), ("view_normals", "occlusion"), ("light_fit", "view_normals")):
         gain = [rows[a]["preview_psnr"] - rows[b]["preview_psnr"] for rows in results.values() if a in rows]
         if gain:
             print(f"{a} vs {b}: preview {sum(gain) / len(gain):+.2f} dB mean, {min(gain):+.2f} dB worst")
+    gain = [rows["light_fit"]["preview_psnr"] - rows["light_fit"]["preview_psnr_trilinear"]
+            for rows in results.values() if "light_fit" in rows]
+    if gain:
+        print(f"light_fit, the footprint filter (dars view, the WebXR page) vs plain trilinear mip-maps (other glTF "
+              f"viewers): preview {sum(gain) / len(gain):+.2f} dB mean, {min(gain):+.2f} dB worst")
     (out / "bench_bake.json").write_text(json.dumps(results, indent=1))
     return 0
 

@@ -201,7 +201,9 @@ print(json.dumps({'train_rays_s': cfg.batch_rays / dt, 'samples_per_ray': r['sam
 
 def _asset_depth_and_preview(run_dir: Path, asset_dir: Path, threads: int) -> dict:
     """Median depth error of the exported GLB on the test views (against the scene's ground-truth depth), and the
-    moderngl preview's PSNR against the photos beside the field's own render's (all test views)."""
+    moderngl preview's PSNR against the photos beside the field's own render's (all test views): ``preview_psnr``
+    with ``dars view``'s footprint texture filter, ``preview_psnr_trilinear`` with plain trilinear mip-maps (what
+    other glTF viewers draw)."""
     return _assets_depth_and_preview(run_dir, {"asset": asset_dir}, threads)["asset"]
 
 
@@ -248,7 +250,7 @@ def _assets_depth_and_preview(run_dir: Path, asset_dirs: dict[str, Path], thread
     for name, asset_dir in asset_dirs.items():
         glb = asset_dir / "scene.glb"
         asset = load_glb(glb)
-        depth_med, cover, p_view = [], [], []
+        depth_med, cover, p_view, p_trilinear = [], [], [], []
         with OffscreenPreview(glb) as view:
             for i in range(len(sc)):
                 if depths is not None:
@@ -257,6 +259,8 @@ def _assets_depth_and_preview(run_dir: Path, asset_dirs: dict[str, Path], thread
                     cover.append(e["coverage"])
                 cam = PinholeCamera.from_cameras(sc.cameras, i, near=extent * 1e-3, far=extent * 10)
                 p_view.append(float(psnr(chw(view.render(cam).to_float()), photos[i])))
+                plain = view.render(cam, PreviewConfig(texture_filter="trilinear"))  # what other glTF viewers draw
+                p_trilinear.append(float(psnr(chw(plain.to_float()), photos[i])))
                 if with_albedo:
                     alb = view.render(cam, PreviewConfig(mode="albedo"))
                     masks[i] = masks[i] & torch.as_tensor(alb.mask)
@@ -266,7 +270,8 @@ def _assets_depth_and_preview(run_dir: Path, asset_dirs: dict[str, Path], thread
         finite = [d for d in depth_med if np.isfinite(d)]
         res[name] = {"depth_error_median_m": float(np.median(finite)) if finite else None,
                      "depth_coverage": float(np.mean(cover)) if cover else None,
-                     "field_psnr": float(np.mean(p_field)), "preview_psnr": float(np.mean(p_view))}
+                     "field_psnr": float(np.mean(p_field)), "preview_psnr": float(np.mean(p_view)),
+                     "preview_psnr_trilinear": float(np.mean(p_trilinear))}
     if with_albedo:
         gt, m = torch.stack(gt_albedo), torch.stack(masks)
         score = lambda pred: {"albedo_mae": float(albedo_mae(pred, gt, m)),  # noqa: E731
@@ -312,7 +317,7 @@ def case_galleries(seeds: list[int], minutes: float, steps: int, threads: int, o
         print(f"[galleries] seed {seed}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                                        for k, v in rows[seed].items()), flush=True)
     keys = ["psnr", "albedo_mae", "albedo_mae_aligned", "metallic_mae", "normal_mae", "depth_error_median_m",
-            "preview_psnr", "field_psnr", "miou", "steps"]
+            "preview_psnr", "preview_psnr_trilinear", "field_psnr", "miou", "steps"]
     worse_high = {"albedo_mae", "albedo_mae_aligned", "metallic_mae", "normal_mae", "depth_error_median_m"}
     table = [[f"seed {s}"] + [r.get(k) for k in keys] for s, r in rows.items()]
 

@@ -10,6 +10,11 @@ Conventions (fixed; ``tests/test_gltf.py`` checks each):
   ``occlusionTexture`` both point at the ORM image (R occlusion, G roughness, B metallic), ``normalTexture``
   (tangent space, +y green up); attributes POSITION, NORMAL, TANGENT (VEC4), TEXCOORD_0. Textures sample with
   trilinear mip-mapping and clamp-to-edge (an atlas must not wrap).
+* **Texture blur.** A UV mesh with a ``texture_blur`` (:class:`toolkit.bake.UVMesh`: how many texels one training
+  pixel spans where the textures were baked from views, :func:`toolkit.viewbake.face_texture_blur`) stores it as
+  the application-specific vertex attribute ``_TEXTURE_BLUR`` (float SCALAR); ``dars view`` and the WebXR page
+  narrow their mip filter by it, other glTF viewers ignore it; :func:`load_glb` reads it into
+  :attr:`GltfAsset.texture_blur`.
 * **Semantics.** One primitive per semantic class (SPEC ids 0-6; 255 unlabelled), all sharing the same vertex
   accessors and material, each with ``extras = {"semantic_class": id, "semantic_name": name}`` — viewers can hide
   or re-material a class without a custom attribute (the stage-16 editor assigns per-class materials this way).
@@ -74,6 +79,9 @@ SEMANTIC_NAMES = ("painting", "frame", "display", "base", "wall", "floor", "othe
 
 _FLOAT, _UINT16, _UINT32 = 5126, 5123, 5125
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
+TEXTURE_BLUR_ATTRIBUTE = "_TEXTURE_BLUR"
+"""The vertex attribute holding :attr:`toolkit.bake.UVMesh.texture_blur` (application-specific: glTF's leading
+underscore)."""
 _LINEAR, _LINEAR_MIPMAP_LINEAR, _CLAMP = 9729, 9987, 33071
 
 
@@ -217,6 +225,10 @@ def export_gltf(uvmesh, textures, path: str | Path, sh=None, *, semantics: Liter
         "TANGENT": add_accessor(tan, "VEC4", _ARRAY_BUFFER),
         "TEXCOORD_0": add_accessor(np.ascontiguousarray(uvmesh.uvs, dtype=np.float32), "VEC2", _ARRAY_BUFFER),
     }
+    blur = getattr(uvmesh, "texture_blur", None)
+    if blur is not None:
+        attributes[TEXTURE_BLUR_ATTRIBUTE] = add_accessor(np.ascontiguousarray(blur, dtype=np.float32), "SCALAR",
+                                                          _ARRAY_BUFFER)
     index_dtype = np.uint16 if uvmesh.num_vertices < 65535 else np.uint32
 
     # ---- primitives (one per semantic class)
@@ -488,6 +500,8 @@ class GltfAsset:
         json: the whole glTF JSON.
         backdrop: the backdrop from ``extras.dars.backdrop`` (:class:`toolkit.backdrop.Backdrop`:
             what the viewers draw where the mesh is not), or None.
+        texture_blur: float32 [V] the ``_TEXTURE_BLUR`` vertex attribute (texels the baked detail is blurred
+            over, :func:`toolkit.viewbake.face_texture_blur`), or None.
     """
 
     vertices: np.ndarray
@@ -503,6 +517,7 @@ class GltfAsset:
     ibl_images: list[list[np.ndarray]]
     json: dict
     backdrop: Any = None
+    texture_blur: np.ndarray | None = None
 
 
 _NUMPY_OF = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
@@ -607,7 +622,8 @@ def _load_glb(path: Path) -> GltfAsset:
     prims = [p for m in root.get("meshes", []) for p in m["primitives"]]
     if not prims:
         raise SceneError(f"{path}: no mesh primitives")
-    pos_list, faces_list, labels_list, attr_lists = [], [], [], {"TEXCOORD_0": [], "NORMAL": [], "TANGENT": []}
+    pos_list, faces_list, labels_list, attr_lists = [], [], [], {"TEXCOORD_0": [], "NORMAL": [], "TANGENT": [],
+                                                                TEXTURE_BLUR_ATTRIBUTE: []}
     offset, seen = 0, {}
     for p in prims:
         if p.get("mode", 4) != 4:
@@ -632,6 +648,10 @@ def _load_glb(path: Path) -> GltfAsset:
         return None if any(x is None for x in parts) else np.concatenate(parts)
 
     uvs, normals, tangents = cat("TEXCOORD_0"), cat("NORMAL"), cat("TANGENT")
+    blur = cat(TEXTURE_BLUR_ATTRIBUTE)
+    if blur is not None and (blur.ndim != 1 or not np.all(np.isfinite(blur)) or np.any(blur < 0)):
+        raise SceneError(f"{path}: the {TEXTURE_BLUR_ATTRIBUTE} attribute must be finite texels ≥ 0, one per vertex; "
+                         "re-export the GLB")
     has_labels = any((p.get("extras") or {}).get("semantic_class") is not None for p in prims)
     images: dict[str, np.ndarray] = {}
     textures = root.get("textures", [])
@@ -672,4 +692,5 @@ def _load_glb(path: Path) -> GltfAsset:
         ibl_images=ibl_images,
         json=root,
         backdrop=Backdrop.from_json(dars["backdrop"], f"{path}: extras.dars.backdrop") if "backdrop" in dars else None,
+        texture_blur=blur,
     )

@@ -29,7 +29,7 @@ CUBE_SH[2] += 0.8  # brighter from above
 
 
 def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True, extras: dict | None = None,
-                  occlusion: float = 1.0, light_tint=None) -> Path:
+                  occlusion: float = 1.0, light_tint=None, texture_blur: float | None = None) -> Path:
     """A unit cube centred at the origin as a GLB: 6 faces in a 3 x 2 atlas (``cell`` px per face, 2 px margins),
     per-face albedo / roughness / metallic (:data:`CUBE_ALBEDO` …), one semantic primitive per face.
 
@@ -37,7 +37,8 @@ def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True, 
     along the face's tangent); without it every face is flat and uniform (an analytic reference is exact).
     ``extras``: merged into the GLB's ``extras.dars`` (e.g. a backdrop). ``occlusion``: ORM red on every face.
     ``light_tint``: an RGB light tint (linear, at most :data:`toolkit.bake.LIGHT_TINT_SCALE`) on every face, stored
-    as the GLB's light-tint texture; None: no such texture.
+    as the GLB's light-tint texture; None: no such texture. ``texture_blur``: this many texels at every vertex, as
+    the GLB's ``_TEXTURE_BLUR`` attribute (the blur a view-projected bake puts in its textures); None: none.
     """
     verts, uvs, nrms, faces, labels = [], [], [], [], []
     width, height = 3 * cell, 2 * cell
@@ -58,7 +59,8 @@ def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True, 
     verts, nrms, uvs = (np.array(x, np.float32) for x in (verts, nrms, uvs))
     faces = np.array(faces, np.int64)
     uvm = UVMesh(verts, faces, uvs, nrms, compute_tangents(verts, faces, uvs, nrms), np.arange(len(verts)),
-                 np.array(labels, np.uint8))
+                 np.array(labels, np.uint8),
+                 None if texture_blur is None else np.full(len(verts), texture_blur, np.float32))
     yy, xx = np.mgrid[0:height, 0:width]
     face = (yy // cell) * 3 + xx // cell
     check = (((xx // 8) + (yy // 8)) % 2)[..., None] if pattern else np.ones((height, width, 1))

@@ -13,7 +13,7 @@ import torch
 
 from export.gltf import (GltfConfig, decode_rgbd, encode_rgbd, export_gltf, export_obj, export_ply, gltf_to_world,
                          load_glb, sh_specular_cubemap, world_to_gltf)
-from toolkit._checks import ConfigError, DarsError, ShapeError
+from toolkit._checks import ConfigError, DarsError, SceneError, ShapeError
 from toolkit.bake import BakeConfig, UnwrapConfig, bake_pbr_textures, unwrap_uv
 from toolkit.mesh import Mesh, MeshConfig, extract_mesh, load_mesh
 
@@ -105,6 +105,26 @@ def test_validator_catches_a_broken_file(glb, tmp_path):
         + len(blob).to_bytes(4, "little") + b"JSON" + blob + rest
     (tmp_path / "bad.glb").write_bytes(bad)
     assert validator_report(tmp_path / "bad.glb")["issues"]["numErrors"] > 0
+
+
+def test_texture_blur_attribute_round_trips_and_validates(baked, tmp_path):
+    """A UV mesh's texture_blur is stored as the _TEXTURE_BLUR vertex attribute: the Khronos validator accepts it
+    (an application-specific attribute), load_glb reads it back; a GLB without it reads None; a negative value is
+    refused on load, naming the attribute."""
+    from dataclasses import replace
+
+    uvm, tex = baked
+    blur = np.linspace(0.0, 9.0, uvm.num_vertices).astype(np.float32)
+    path = export_gltf(replace(uvm, texture_blur=blur), tex, tmp_path / "blur.glb", sh=SH)
+    report = validator_report(path)["issues"]
+    assert report["numErrors"] == 0 and report["numWarnings"] == 0, report["messages"]
+    back = load_glb(path)
+    assert back.texture_blur is not None and np.allclose(back.texture_blur, blur)
+    assert load_glb(export_gltf(uvm, tex, tmp_path / "plain.glb", sh=SH)).texture_blur is None
+    blur[3] = -1.0
+    bad = export_gltf(replace(uvm, texture_blur=blur), tex, tmp_path / "bad.glb", sh=SH)
+    with pytest.raises(SceneError, match="_TEXTURE_BLUR"):
+        load_glb(bad)
 
 
 # ------------------------------------------------------------------------------------------------ conventions

@@ -8,7 +8,7 @@ from toolkit._checks import ConfigError, ShapeError
 from toolkit.cameras import cameras_from_pinholes
 from toolkit.mesh import Mesh
 from toolkit.pinhole import PinholeCamera, look_at
-from toolkit.viewbake import ViewMaps, project_views, view_projected
+from toolkit.viewbake import ViewMaps, face_texture_blur, project_views, vertex_texture_blur, view_projected
 
 SIZE = 32
 
@@ -87,9 +87,32 @@ def test_bake_mesh_from_views_bakes_what_the_views_show():
     colour = srgb_to_linear(tex.base_color[tex.mask].astype(np.float64) / 255.0)
     assert np.allclose(colour.mean(0), [0.9, 0.0, 0.0], atol=0.01)
     assert stats["bake_from"] == "views" and stats["views"]["texels_seen"] == 1.0 and stats["views"]["count"] == 4
-    _, tex, stats = bake_mesh(quad, _blue, cfg)
-    assert stats["bake_from"] == "points" and "views" not in stats
+    assert 1.0 < stats["texture_blur"]["median"] <= stats["texture_blur"]["p90"] < 20.0, stats["texture_blur"]
+    uvm, tex, stats = bake_mesh(quad, _blue, cfg)
+    assert stats["bake_from"] == "points" and "views" not in stats and uvm.texture_blur is None
     assert np.allclose(srgb_to_linear(tex.base_color[tex.mask] / 255.0).mean(0), [0.0, 0.0, 1.0], atol=0.01)
+
+
+def test_face_texture_blur_is_a_view_pixel_over_a_texel():
+    """A 1 m floor quad mapped onto the whole 64² atlas (a texel 1/64 m) seen from 2 m by cameras of 20 px focal
+    length (a pixel 0.1 m there): 6.4 texels, over views A and B only (C is occluded, D translucent); it scales with
+    the texture's side and slant lengthens it by 1 / cos θ; a face no view sees has none; at the vertices it is the
+    mean of the faces that have one."""
+    v = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]], np.float32)
+    uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32)
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    b = face_texture_blur(v, f, uv, _maps(), 64)
+    assert b.shape == (2,) and torch.allclose(b, torch.full((2,), 6.4), rtol=0.02), b
+    assert torch.allclose(face_texture_blur(v, f, uv, _maps(), 128), 2 * b, rtol=1e-4)
+    tilt = np.array([[1, 0, 0], [0, np.cos(0.6), 0], [0, np.sin(0.6), 0]], np.float32)  # about x, 0.6 rad
+    maps = _maps()
+    tilted = maps.depth.clone()
+    ratio = face_texture_blur(v @ tilt.T, f, uv, ViewMaps(maps.cameras, tilted, maps.opacity, maps.values), 64) / b
+    assert float(ratio.min()) > 1.0  # seen at a slant: longer; the depth test drops what moved off the maps
+    far = v + np.array([0, 0, -5.0], np.float32)  # under the floor every view sees: occluded everywhere
+    assert torch.equal(face_texture_blur(far, f, uv, _maps(), 64), torch.zeros(2))
+    assert torch.allclose(vertex_texture_blur(f, torch.tensor([2.0, 0.0]), 5), torch.tensor([2.0, 2.0, 2.0, 0.0, 0.0]))
+    assert torch.allclose(vertex_texture_blur(f, torch.tensor([2.0, 4.0]), 4), torch.tensor([3.0, 2.0, 3.0, 4.0]))
 
 
 def test_view_projected_light_gain_defaults_to_no_change():

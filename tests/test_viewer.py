@@ -294,6 +294,34 @@ def test_light_tint_texture_tints_the_lit_colour(gl, flat_cube_glb, tmp_path):
     assert np.array_equal(albedos[0], albedos[1])
 
 
+def test_texture_filter_follows_the_footprint_less_the_baked_blur(gl, tmp_path):
+    """Seen from afar (a footprint of several texels), a checker keeps more contrast under the footprint filter than
+    under plain trilinear mip-mapping, more again where the GLB's _TEXTURE_BLUR says the bake already blurred it (the
+    finest level), and the blur changes nothing up close (magnified, the finest level in both)."""
+    from viewers.preview import OffscreenPreview, PreviewConfig
+
+    plain = textured_cube(tmp_path / "plain.glb")
+    blurred = textured_cube(tmp_path / "blurred.glb", texture_blur=64.0)
+    far, near = _cam([4.0, -6.4, 3.2], w=64, h=48, f=40.0), _cam([1.2, -1.9, 1.0], w=160, h=120, f=200.0)
+
+    def contrast(glb, cam, cfg=PreviewConfig(mode="albedo")):
+        with OffscreenPreview(glb, ctx=gl) as view:
+            img = view.render(cam, cfg)
+        assert img.mask.mean() > 0.005
+        return img, float(img.to_float()[img.mask].std(0).mean())
+
+    _, trilinear = contrast(plain, far, PreviewConfig(mode="albedo", texture_filter="trilinear"))
+    _, footprint = contrast(plain, far)
+    _, finest = contrast(blurred, far)
+    assert trilinear < footprint < finest, (trilinear, footprint, finest)
+    a, _ = contrast(plain, near)
+    b, _ = contrast(blurred, near)
+    near_diff = np.abs(a.to_float() - b.to_float()).max(-1)
+    assert near_diff.mean() < 0.002 and np.quantile(near_diff, 0.99) < 0.02, (near_diff.mean(), near_diff.max())
+    with pytest.raises(ConfigError, match="texture_filter"):
+        PreviewConfig(texture_filter="nearest")
+
+
 def test_normal_map_decodes_to_the_baked_field_normal(gl, tmp_path):
     """Bake a tilted normal field onto a sphere (toolkit.bake), export, render ``normals``: the decoded world normal
     matches the field's at the ray-cast hit (tangent frame, handedness and axis conversion agree with the bake)."""
@@ -568,10 +596,17 @@ def test_cli_view_headless(cube_glb, tmp_path, capsys):
     res = json.loads(out)
     assert res["width"] == 96 and res["height"] == 64 and "sh.json" in res["light"] and 0.05 < res["coverage"] < 0.9
     assert read_image(tmp_path / "v.png").shape == (64, 96, 3)
+    far = tmp_path / "far.png"
+    for name, flt in (("far.png", "footprint"), ("far_trilinear.png", "trilinear")):  # the checker, minified
+        rc, _, err = _dars_inproc(capsys, "view", cube_glb, "--out", tmp_path / name, "--width", 24, "--height", 18,
+                                  "--mode", "albedo", "--texture-filter", flt)
+        assert rc == 0, err
+    assert not np.array_equal(read_image(far), read_image(tmp_path / "far_trilinear.png"))
     for args, message in (((tmp_path / "missing.glb", "--out", tmp_path / "x.png"), "asset not found"),
                           ((cube_glb, "--headless"), "--out"),
                           ((cube_glb, "--out", tmp_path / "x.png", "--camera", "nonsense"), "SCENE:SPLIT:INDEX"),
                           ((cube_glb, "--out", tmp_path / "x.png", "--width", 0), "--width"),
+                          ((cube_glb, "--out", tmp_path / "x.png", "--texture-filter", "nearest"), "--texture-filter"),
                           ((cube_glb, "--out", tmp_path / "x.png", "--sh", "a.json", "--probe", "b.hdr"),
                            "not allowed with")):
         rc, _, err = _dars_inproc(capsys, "view", *args)

@@ -232,28 +232,56 @@ def test_page_draws_the_backdrop_like_dars_view(serve, tmp_path):
         export_web(textured_cube(tmp_path / "plain.glb"), tmp_path / "plain", cfg=WebConfig(background="backdrop"))
 
 
+def _page_shot(glb, serve, tmp_path, w: int, h: int):
+    """The page of ``glb`` in headless Chromium at w x h (no antialiasing), checked to load cleanly: (its RGB
+    screenshot, the page's camera for ``render_preview``)."""
+    from viewers.web import view_camera_from_web
+
+    site = _site(glb, tmp_path / "site")
+    report = _web_check(serve(site.out_dir) + "/index.html?dpr=1&noaa", tmp_path / "page.png", w, h)
+    assert report["ready"] and not report["console_errors"] and not report["page_errors"], report
+    cam = view_camera_from_web(json.loads(site.light_json.read_text())["camera"], w, h)
+    return read_image(tmp_path / "page.png")[..., :3], cam
+
+
+def _psnr(a, b) -> float:
+    return float(-10 * np.log10(max(float(((a - b) ** 2).mean()), 1e-12)))
+
+
 def test_page_applies_the_light_tint_like_dars_view(serve, tmp_path):
     """A GLB with a light-tint texture (the colour of the field's per-point light, toolkit.asset
     AssetConfig.light_tint): the page multiplies the model's shading by it as ``dars view`` does, a visible change
     of colour against the same cube without it."""
     from viewers.preview import render_preview
-    from viewers.web import view_camera_from_web
 
     glb = textured_cube(tmp_path / "cube.glb", light_tint=(1.3, 1.0, 0.6))
-    site = _site(glb, tmp_path / "site")
-    w, h = 320, 240
-    report = _web_check(serve(site.out_dir) + "/index.html?dpr=1&noaa", tmp_path / "page.png", w, h)
-    assert report["ready"] and not report["console_errors"] and not report["page_errors"], report
-    shot = read_image(tmp_path / "page.png")[..., :3]
-    cam = view_camera_from_web(json.loads(site.light_json.read_text())["camera"], w, h)
+    shot, cam = _page_shot(glb, serve, tmp_path, 320, 240)
     ref = render_preview(glb, cam)
     plain = render_preview(textured_cube(tmp_path / "plain.glb"), cam)
     m = ref.mask
     assert m.mean() > 0.1
     ratio = ref.to_float()[m].mean(0) / np.maximum(plain.to_float()[m].mean(0), 1e-6)
     assert ratio[0] > 1.05 and ratio[2] < 0.85, ratio  # warmer: red up, blue down
-    psnr_db = -10 * np.log10(max(float(((shot - ref.to_float()) ** 2).mean()), 1e-12))
+    psnr_db = _psnr(shot, ref.to_float())
     assert psnr_db >= 30.0, f"page vs dars view with a light tint: PSNR {psnr_db:.1f} dB (bound 30 dB)"
+
+
+def test_page_filters_textures_like_dars_view(serve, tmp_path):
+    """A GLB with a _TEXTURE_BLUR attribute (the blur a view-projected bake puts in its textures), drawn small so
+    the checker is minified: the page narrows its mip filter as ``dars view`` does (a visible change against plain
+    trilinear mip-mapping there) and matches it."""
+    from viewers.preview import PreviewConfig, render_preview
+
+    glb = textured_cube(tmp_path / "cube.glb", texture_blur=64.0)
+    shot, cam = _page_shot(glb, serve, tmp_path, 48, 36)
+    ref = render_preview(glb, cam)
+    trilinear = render_preview(glb, cam, PreviewConfig(texture_filter="trilinear"))
+    assert ref.mask.mean() > 0.1
+    change = np.abs(ref.to_float() - trilinear.to_float())[ref.mask].mean()
+    assert change > 0.01, change  # the filter matters here
+    psnr_db, psnr_trilinear = _psnr(shot, ref.to_float()), _psnr(shot, trilinear.to_float())
+    assert psnr_db >= 30.0, f"page vs dars view with a texture blur: PSNR {psnr_db:.1f} dB (bound 30 dB)"
+    assert psnr_db > psnr_trilinear + 1.0, (psnr_db, psnr_trilinear)  # the page narrows its filter too
 
 
 def test_page_with_threejs_stock_shading_loads(page, serve, tmp_path):

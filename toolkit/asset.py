@@ -16,7 +16,7 @@ import inspect
 import io
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -434,7 +434,9 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
 
     Returns:
         (uvmesh, textures, statistics ``texture``, ``supersample``, ``uv_vertices``, timings, ``chart_coverage``,
-        ``defaults``, ``bake_from`` and, from views, ``views`` (count, size, tolerance, share of texels seen) and
+        ``defaults``, ``bake_from`` and, from views, ``views`` (count, size, tolerance, share of texels seen),
+        ``texture_blur`` (median and 90th percentile over the faces views see, texels,
+        :func:`toolkit.viewbake.face_texture_blur`, which the uvmesh carries per vertex; None when none) and
         ``light_scale``: the factor the GLB's SH must be scaled by, 1 without the occlusion).
     """
     from .bake import BakeConfig, UnwrapConfig, bake_pbr_textures, label_faces, unwrap_uv
@@ -474,6 +476,15 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
              "bake_from": "points" if views is None else "views", "light_scale": round(scale, 4),
              "light_fit": fitted}
     if views is not None:
+        from .viewbake import face_texture_blur, vertex_texture_blur
+
+        face_blur = face_texture_blur(uvmesh.vertices, uvmesh.faces, uvmesh.uvs, views, cfg.texture,
+                                      cfg.view_tolerance)
+        uvmesh = replace(uvmesh, texture_blur=vertex_texture_blur(uvmesh.faces, face_blur, uvmesh.num_vertices)
+                         .numpy().astype(np.float32))
+        blurred = face_blur[face_blur > 0].numpy()
+        stats["texture_blur"] = ({"median": round(float(np.median(blurred)), 3),
+                                  "p90": round(float(np.percentile(blurred, 90)), 3)} if blurred.size else None)
         stats["views"] = {"count": len(views.cameras), "width": int(views.cameras.width[0]),
                           "height": int(views.cameras.height[0]), "tolerance": cfg.view_tolerance,
                           "texels_seen": round(seen.get("seen", 0) / max(1, seen.get("points", 0)), 4)}

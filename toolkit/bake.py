@@ -68,7 +68,8 @@ dielectric. A missing ``normal`` bakes the flat map (0.5, 0.5, 1) (the interpola
 class UVMesh(Mesh):
     """A :class:`~toolkit.mesh.Mesh` with a UV atlas (vertices split along chart seams).
 
-    Constructed as ``UVMesh(vertices, faces, uvs, normals, tangents, vmapping, face_labels=None)``; the mesh's
+    Constructed as ``UVMesh(vertices, faces, uvs, normals, tangents, vmapping, face_labels=None,
+    texture_blur=None)``; the mesh's
     ``colors`` and ``labels`` are None (labels are per face here).
 
     Attributes:
@@ -79,6 +80,8 @@ class UVMesh(Mesh):
         tangents: float32 [V, 4] unit tangent (xyz, ⟂ normal, along increasing u) and handedness w = ±1.
         vmapping: int64 [V] index of each vertex in the source :class:`~toolkit.mesh.Mesh`.
         face_labels: uint8 [F] semantic class per face (0-6, 255 unlabelled), or None.
+        texture_blur: float32 [V] how blurred the baked textures are around each vertex, in texels
+            (:func:`toolkit.viewbake.face_texture_blur`; the GLB's ``_TEXTURE_BLUR`` attribute), or None.
     """
 
     colors: None = dc_field(default=None, init=False, repr=False)
@@ -87,12 +90,14 @@ class UVMesh(Mesh):
     tangents: np.ndarray = None
     vmapping: np.ndarray = None
     face_labels: np.ndarray | None = None
+    texture_blur: np.ndarray | None = None
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, normals: np.ndarray,
-                 tangents: np.ndarray, vmapping: np.ndarray, face_labels: np.ndarray | None = None):
+                 tangents: np.ndarray, vmapping: np.ndarray, face_labels: np.ndarray | None = None,
+                 texture_blur: np.ndarray | None = None):
         for name, value in (("vertices", vertices), ("faces", faces), ("normals", normals), ("colors", None),
                             ("labels", None), ("uvs", uvs), ("tangents", tangents), ("vmapping", vmapping),
-                            ("face_labels", face_labels)):
+                            ("face_labels", face_labels), ("texture_blur", texture_blur)):
             object.__setattr__(self, name, value)
         self.__post_init__()
 
@@ -104,6 +109,8 @@ class UVMesh(Mesh):
             check_shape(getattr(self, name), spec, f"UVMesh.{name}")
         if self.face_labels is not None:
             check_shape(self.face_labels, f"{self.num_faces}", "UVMesh.face_labels")
+        if self.texture_blur is not None:
+            check_shape(self.texture_blur, f"{v}", "UVMesh.texture_blur")
 
     def to_mesh(self) -> Mesh:
         """Geometry only (split vertices kept)."""

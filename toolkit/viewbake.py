@@ -28,7 +28,8 @@ from ._checks import ConfigError, ShapeError
 from .bake import DEFAULT_MATERIAL
 from .cameras import Cameras, project_points
 
-__all__ = ["ViewMaps", "project_views", "view_projected", "fit_light", "FIT_WEIGHT_EXPONENT", "VIEW_DEFAULTS"]
+__all__ = ["ViewMaps", "project_views", "view_projected", "fit_light", "face_texture_blur", "vertex_texture_blur",
+           "FIT_WEIGHT_EXPONENT", "VIEW_DEFAULTS"]
 
 VIEW_DEFAULTS: dict[str, object] = {**DEFAULT_MATERIAL, "light_gain": 1.0, "light_tint": (1.0, 1.0, 1.0)}
 """What a point no view sees gets for a key the material callable lacks: the bake's defaults, and no change of
@@ -208,3 +209,68 @@ def view_projected(material_fn: Callable, maps: ViewMaps, tolerance: float = 0.1
         return out
 
     return fn
+
+
+
+def face_texture_blur(vertices, faces, uvs, maps: ViewMaps, texture_size: int, tolerance: float = 0.1,
+                      min_opacity: float = 0.5) -> torch.Tensor:
+    """How blurred the view-projected texture is on each face, in texels: the footprint of a view pixel on the
+    face along its longer axis, over a texel's side, root mean square over the views that see the face.
+
+    A texel takes the pixel it falls in at each view that sees it, so the baked detail is no finer than those
+    pixels: a 2048² atlas of a room photographed at 128 px holds from ~4 texels per view pixel on a near wall seen
+    square-on to tens on the floor seen at a grazing angle. A viewer's mip-map blurs a second time what the bake
+    already blurred once; ``dars view`` and the WebXR page narrow their texture filter by this blur (the GLB's
+    ``_TEXTURE_BLUR`` vertex attribute; :mod:`viewers.preview`).
+
+    Per face (centroid, its world area over its UV area × ``texture_size``²: a texel's side ``s``), at every view
+    that sees the centroid (:func:`project_views`' test) the pixel's longer side on the face is z / (f · |cos θ|)
+    (z the depth along the camera's axis, f = √(fx · fy), θ between the view ray and the face normal, |cos θ| ≥
+    0.2) — the axis a viewer's isotropic mip selection measures too.
+
+    Args:
+        vertices: float [V, 3] world positions, metres; faces: int [F, 3]; uvs: float [V, 2] atlas coordinates.
+        maps: the views the texture was baked from (their own pixel grid and intrinsics).
+        texture_size: the atlas's side in texels.
+        tolerance, min_opacity: :func:`project_views`.
+
+    Returns:
+        float32 [F] texels; 0 where no view sees the face or its UV area is empty.
+    """
+    v = torch.as_tensor(vertices, dtype=torch.float32).reshape(-1, 3)
+    f = torch.as_tensor(faces, dtype=torch.long).reshape(-1, 3)
+    uv = torch.as_tensor(uvs, dtype=torch.float32).reshape(-1, 2)
+    p = v[f]
+    cross = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    area = 0.5 * cross.norm(dim=1)
+    normal = cross / (2.0 * area).clamp_min(1e-12)[:, None]
+    t = uv[f] * float(texture_size)
+    e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    texels = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).abs()
+    ok = (texels > 1e-6) & (area > 1e-12)
+    side2 = area / texels.clamp_min(1e-6)  # a texel's side², m²
+    centre = p.mean(1)
+    k2_sum = torch.zeros(len(f))
+    n_views = torch.zeros(len(f))
+    for i, idx, _, _ in _sightings(centre, maps, tolerance, min_opacity):
+        ray = centre[idx] - maps.cameras.c2w[i, :3, 3].to(torch.float32)
+        cos = ((ray * normal[idx]).sum(1).abs() / ray.norm(dim=1).clamp_min(1e-9)).clamp_min(0.2)
+        _, z = project_points(maps.cameras, i, centre[idx])
+        focal2 = float(maps.cameras.fx[i]) * float(maps.cameras.fy[i])
+        k2_sum[idx] += z ** 2 / (focal2 * cos ** 2 * side2[idx])
+        n_views[idx] += 1
+    keep = ok & (n_views > 0)
+    out = torch.zeros(len(f))
+    out[keep] = (k2_sum[keep] / n_views[keep]).sqrt()
+    return out
+
+
+def vertex_texture_blur(faces, face_blur, num_vertices: int) -> torch.Tensor:
+    """:func:`face_texture_blur` at the vertices (what a GLB stores and a viewer interpolates): the mean over the
+    faces around each vertex that have one (0 where none has)."""
+    f = torch.as_tensor(faces, dtype=torch.long).reshape(-1, 3)
+    b = torch.as_tensor(face_blur, dtype=torch.float32).reshape(-1)
+    has = (b > 0).float()
+    total = torch.zeros(num_vertices).index_add_(0, f.reshape(-1), b.repeat_interleave(3))
+    count = torch.zeros(num_vertices).index_add_(0, f.reshape(-1), has.repeat_interleave(3))
+    return torch.where(count > 0, total / count.clamp_min(1.0), torch.zeros(num_vertices))

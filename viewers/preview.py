@@ -7,7 +7,11 @@ The fragment shader calls ``dars_shade_pbr``, generated from :mod:`toolkit.shadi
   ``baseColorFactor``; ORM: R occlusion (scales the lit colour), G roughness, B metallic (times the factors);
   tangent-space normal map decoded with the
   GLB's TANGENT (xyz re-orthogonalised against the interpolated normal, bitangent ``w · cross(n, t)``) — the frame
-  :mod:`toolkit.bake` encodes with. Textures sample trilinearly with clamp-to-edge, as the GLB's sampler says.
+  :mod:`toolkit.bake` encodes with. Textures sample trilinearly with clamp-to-edge, as the GLB's sampler says,
+  but with the filter narrowed to a pixel's own footprint less the blur the bake already put in the texture (the
+  GLB's ``_TEXTURE_BLUR`` vertex attribute, b texels, :func:`toolkit.viewbake.face_texture_blur`): a footprint of
+  ρ texels looks up a mip footprint of √((ρ² − 2b²) / 3), matching variances (see the shader), and the finest level
+  while ρ² ≤ 2b². Plain trilinear mip-mapping (what other glTF viewers do) blurs the baked detail a second time.
 * Geometry is drawn as stored (glTF +y up); the camera is rotated into that frame (:mod:`viewers.camera`) and the
   shading normal and view direction are rotated back to the dars world (+z up) where the SH lives.
 * Output: ``lit`` = linear radiance × 2^exposure → clamp → sRGB; ``albedo`` = base colour in sRGB; ``roughness`` /
@@ -66,8 +70,13 @@ class PreviewConfig:
     """Display (sRGB) colour of the background when not drawing the SH environment."""
     shading: ShadingConfig = field(default_factory=ShadingConfig)
     """Shading options (the same dataclass the trainer uses)."""
+    texture_filter: Literal["footprint", "trilinear"] = "footprint"
+    """``footprint``: the mip filter narrowed to the pixel's footprint less the GLB's ``_TEXTURE_BLUR`` (module
+    docstring; what the WebXR page does); ``trilinear``: plain trilinear mip-mapping, as other glTF viewers draw."""
 
     def __post_init__(self) -> None:
+        if self.texture_filter not in ("footprint", "trilinear"):
+            raise ConfigError(f"texture_filter={self.texture_filter!r} is not valid: choose 'footprint' or 'trilinear'")
         if self.mode not in MODES:
             raise ConfigError(f"mode={self.mode!r} is not valid: choose one of {', '.join(MODES)}")
         if self.background not in BACKGROUNDS:
@@ -123,12 +132,15 @@ in vec3 in_position;        // glTF frame (+y up), metres
 in vec3 in_normal;
 in vec4 in_tangent;
 in vec2 in_uv;
+in float in_blur;           // texels (_TEXTURE_BLUR; 0 without)
 out vec3 v_position;
 out vec3 v_normal;
 out vec4 v_tangent;
 out vec2 v_uv;
+out float v_blur;
 void main() {
     v_position = in_position;
+    v_blur = in_blur;
     v_normal = in_normal;
     v_tangent = in_tangent;
     v_uv = in_uv;
@@ -137,11 +149,14 @@ void main() {
 """
 
 _MESH_FS = """
+
 uniform sampler2D u_base_color;   // sRGB texture: reads linear
 uniform sampler2D u_orm;          // R occlusion, G roughness, B metallic (linear)
 uniform sampler2D u_normal_map;   // tangent space, (n + 1) / 2
 uniform sampler2D u_light_tint;   // linear tint / u_tint_scale (extras.dars.light_tint; white, scale 1 without)
 uniform float u_tint_scale;
+uniform float u_texture_size;     // the base-colour texture's side, texels (v_blur's unit)
+uniform bool u_trilinear;         // PreviewConfig.texture_filter == "trilinear": the GPU's own mip selection
 uniform vec4 u_base_factor;
 uniform vec2 u_metal_rough_factor;
 uniform float u_normal_scale;
@@ -157,9 +172,28 @@ in vec3 v_position;
 in vec3 v_normal;
 in vec4 v_tangent;
 in vec2 v_uv;
+in float v_blur;
 out vec4 out_colour;
 
+// The texture filter, narrowed by the blur the bake already put in the texture (v_blur: texels one training pixel
+// spans there, toolkit.viewbake.face_texture_blur). In variances: a pixel's own footprint, a box of rho texels (its
+// longer axis), holds rho²/12; the baked detail already holds 2·b²/12 (a training pixel's box, b wide, at a random
+// offset to the texel, averaged over views); a trilinear mip lookup of footprint r adds r²/4 (level box r²/12 and
+// bilinear tent r²/6). So r² = (rho² − 2 b²) / 3, and the finest level where rho² ≤ 2 b². Without the attribute
+// (b = 0) that is rho / sqrt(3). Derivatives are taken once here, in uniform control flow: every map shares
+// TEXCOORD_0.
+vec2 g_dx, g_dy;
+vec4 dars_texture(sampler2D s, vec2 uv) { return textureGrad(s, uv, g_dx, g_dy); }
+
 void main() {
+    g_dx = dFdx(v_uv);
+    g_dy = dFdy(v_uv);
+    float rho2 = max(dot(g_dx, g_dx), dot(g_dy, g_dy));
+    float b = v_blur / u_texture_size;
+    float rest = rho2 - 2.0 * b * b;
+    float narrow = u_trilinear ? 1.0 : (rest > 0.0 ? sqrt(rest / (3.0 * rho2)) : 0.0);
+    g_dx *= narrow;
+    g_dy *= narrow;
     vec3 N = normalize(v_normal);
     if (u_double_sided && !gl_FrontFacing) N = -N;
     vec3 n = N;
@@ -169,7 +203,7 @@ void main() {
         if (tl > 1e-6) {
             T /= tl;
             vec3 B = cross(N, T) * (v_tangent.w < 0.0 ? -1.0 : 1.0);
-            vec3 nt = texture(u_normal_map, v_uv).xyz * 2.0 - 1.0;
+            vec3 nt = dars_texture(u_normal_map, v_uv).xyz * 2.0 - 1.0;
             nt.xy *= u_normal_scale;
             vec3 p = T * nt.x + B * nt.y + N * nt.z;
             float pl = length(p);
@@ -178,8 +212,8 @@ void main() {
     }
     vec3 n_world = normalize(u_gltf_to_world * n);
     vec3 v_world = normalize(u_gltf_to_world * (u_camera_pos - v_position));
-    vec4 base = texture(u_base_color, v_uv) * u_base_factor;
-    vec3 orm = texture(u_orm, v_uv).rgb;
+    vec4 base = dars_texture(u_base_color, v_uv) * u_base_factor;
+    vec3 orm = dars_texture(u_orm, v_uv).rgb;
     float roughness = clamp(orm.g * u_metal_rough_factor.y, 0.0, 1.0);
     float metallic = clamp(orm.b * u_metal_rough_factor.x, 0.0, 1.0);
     vec3 albedo = clamp(base.rgb, 0.0, 1.0);
@@ -189,7 +223,7 @@ void main() {
         // glTF occlusion (ORM red) scales the SH lighting, diffuse and specular: three.js (the WebXR page) does
         // the same; dars bakes the field's per-point light gain into it (toolkit.asset.AssetConfig.light_occlusion)
         // and that light's colour into the light-tint texture (AssetConfig.light_tint)
-        vec3 tint = texture(u_light_tint, v_uv).rgb * u_tint_scale;
+        vec3 tint = dars_texture(u_light_tint, v_uv).rgb * u_tint_scale;
         display = dars_linear_to_srgb(clamp(s.colour * orm.r * tint * u_exposure_scale, 0.0, 1.0));
     } else if (u_mode == 1) {
         display = dars_linear_to_srgb(albedo);
@@ -303,7 +337,9 @@ class PreviewRenderer:
         else:
             tan = np.zeros((n_vert, 4), np.float32)
         uv = asset.uvs.astype(np.float32) if asset.uvs is not None else np.zeros((n_vert, 2), np.float32)
-        interleaved = np.concatenate([pos, nrm, tan, uv], 1).astype(np.float32)
+        blur = getattr(asset, "texture_blur", None)
+        blur = np.zeros((n_vert, 1), np.float32) if blur is None else np.asarray(blur, np.float32).reshape(n_vert, 1)
+        interleaved = np.concatenate([pos, nrm, tan, uv, blur], 1).astype(np.float32)
         self.vbo = self._keep(ctx.buffer(interleaved.tobytes()))
         faces = np.asarray(asset.faces, dtype=np.uint32)
         self.num_faces = int(faces.shape[0])
@@ -321,6 +357,7 @@ class PreviewRenderer:
         self.double_sided = bool(mat.get("doubleSided", False))
         images = asset.images
         self.base_color = self._texture(images.get("base_color"), np.array([188, 188, 188], np.uint8), srgb=True)
+        self.texture_size = float(max(self.base_color.size))
         self.orm = self._texture(images.get("orm"), np.array([255, 255, 0], np.uint8))
         self.normal_map = self._texture(images.get("normal"), np.array([128, 128, 255], np.uint8))
         self.light_tint = self._texture(images.get("light_tint"), np.array([255, 255, 255], np.uint8))
@@ -393,7 +430,7 @@ class PreviewRenderer:
             bg = self._keep(ctx.program(vertex_shader=GLSL_VERSION + _BACKGROUND_VS,
                                         fragment_shader=GLSL_VERSION + src + _BACKGROUND_FS))
             vao = self._keep(ctx.vertex_array(
-                mesh, [(self.vbo, "3f 3f 4f 2f", "in_position", "in_normal", "in_tangent", "in_uv")],
+                mesh, [(self.vbo, "3f 3f 4f 2f 1f", "in_position", "in_normal", "in_tangent", "in_uv", "in_blur")],
                 index_buffer=self.ibo, index_element_size=4))
             bg_vao = self._keep(ctx.vertex_array(bg, [(self.quad, "2f", "in_pos")]))
             self._pipelines[shading] = (mesh, vao, bg, bg_vao)
@@ -460,6 +497,8 @@ class PreviewRenderer:
         _set(p, "u_exposure_scale", exposure_scale)
         _set(p, "u_sh", sh_value)
         _set(p, "u_tint_scale", self.tint_scale)
+        _set(p, "u_texture_size", self.texture_size)
+        _set(p, "u_trilinear", cfg.texture_filter == "trilinear")
         for unit, (name, tex) in enumerate((("u_base_color", self.base_color), ("u_orm", self.orm),
                                             ("u_normal_map", self.normal_map), (DFG_UNIFORM, self.dfg),
                                             ("u_light_tint", self.light_tint))):

@@ -57,6 +57,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="lit mode, behind the mesh: auto (default): the GLB's backdrop (the field's learned "
                         "background, where the photos saw it) unless relit, else the SH light; backdrop; sh; "
                         "colour (flat grey)")
+    q.add_argument("--texture-filter", choices=("footprint", "trilinear"), default="footprint",
+                   help="footprint (default): the mip filter narrowed to each pixel's footprint less the blur the bake "
+                        "put in the textures (the GLB's _TEXTURE_BLUR), as the WebXR page draws; trilinear: plain "
+                        "trilinear mip-maps, what other glTF viewers draw")
     q.add_argument("--screenshots", default=".", help="window mode: directory for screenshot PNGs (key p / F12)")
     q.add_argument("--json", action="store_true", help="machine-readable result on stdout (headless)")
     q.set_defaults(func=cmd_view)
@@ -108,7 +112,8 @@ def cmd_view(args: argparse.Namespace) -> int:
     path = resolve_asset_path(args.asset)
     asset = load_glb(path)
     lights, source = _lights(asset, args)
-    cfg = PreviewConfig(mode=args.mode, exposure=args.exposure, background=args.background)
+    cfg = PreviewConfig(mode=args.mode, exposure=args.exposure, background=args.background,
+                        texture_filter=args.texture_filter)
     camera = _camera(args, args.width)
     if headless:
         from viewers.preview import render_preview

@@ -63,6 +63,43 @@ void RE_IndirectSpecular_Dars( const in vec3 radiance, const in vec3 irradiance,
 #define RE_IndirectSpecular RE_IndirectSpecular_Dars
 `;
 
+// The texture filter of the moderngl preview (viewers/preview.py): the mip footprint narrowed to a pixel's own
+// footprint less the blur the bake already put in the texture (the GLB's _TEXTURE_BLUR vertex attribute, texels; 0
+// without it): r² = (rho² − 2 b²) / 3, the finest level where rho² ≤ 2 b². Every map of a dars GLB shares TEXCOORD_0,
+// so one pair of gradients, taken at the top of main(), serves them all.
+const DARS_FILTER_PARS = /* glsl */`
+uniform float u_dars_texture_size;
+varying float vDarsBlur;
+vec2 darsGx, darsGy;
+vec4 darsTexture2D( sampler2D s, vec2 uv ) { return textureGrad( s, uv, darsGx, darsGy ); }
+`;
+const DARS_FILTER_MAIN = /* glsl */`
+#ifdef USE_MAP
+  darsGx = dFdx( vMapUv );
+  darsGy = dFdy( vMapUv );
+  float darsRho2 = max( dot( darsGx, darsGx ), dot( darsGy, darsGy ) );
+  float darsB = vDarsBlur / u_dars_texture_size;
+  float darsRest = darsRho2 - 2.0 * darsB * darsB;
+  float darsNarrow = darsRest > 0.0 ? sqrt( darsRest / ( 3.0 * darsRho2 ) ) : 0.0;
+  darsGx *= darsNarrow;
+  darsGy *= darsNarrow;
+#endif
+`;
+const DARS_FILTERED_CHUNKS = ['map_fragment', 'roughnessmap_fragment', 'metalnessmap_fragment', 'normal_fragment_maps',
+  'aomap_fragment'];
+
+function useDarsFilter(shader, textureSize) {
+  shader.uniforms.u_dars_texture_size = { value: textureSize };
+  shader.vertexShader = shader.vertexShader
+    .replace('void main() {', 'attribute float _texture_blur;\nvarying float vDarsBlur;\nvoid main() {\n'
+      + '  vDarsBlur = _texture_blur;');
+  let fs = shader.fragmentShader.replace('void main() {', `${DARS_FILTER_PARS}\nvoid main() {\n${DARS_FILTER_MAIN}`);
+  for (const chunk of DARS_FILTERED_CHUNKS) {
+    fs = fs.replace(`#include <${chunk}>`, THREE.ShaderChunk[chunk].replaceAll('texture2D(', 'darsTexture2D('));
+  }
+  shader.fragmentShader = fs;
+}
+
 // tint: the GLB's light-tint texture (extras.dars.light_tint: the colour of the field's per-point light, linear,
 // stored / scale) or null; it multiplies the shaded colour with the occlusion, as the moderngl preview does.
 function useDarsShading(material, tint) {
@@ -74,7 +111,7 @@ function useDarsShading(material, tint) {
       shader.uniforms.u_tint_scale = { value: tint.scale };
       shader.fragmentShader = shader.fragmentShader
         .replace('void main() {', 'uniform sampler2D u_light_tint;\nuniform float u_tint_scale;\nvoid main() {');
-      tintGlsl = '\n#ifdef USE_AOMAP\nvec3 darsTint = texture2D( u_light_tint, vAoMapUv ).rgb * u_tint_scale;\n'
+      tintGlsl = '\n#ifdef USE_AOMAP\nvec3 darsTint = darsTexture2D( u_light_tint, vAoMapUv ).rgb * u_tint_scale;\n'
         + 'reflectedLight.indirectDiffuse *= darsTint;\nreflectedLight.indirectSpecular *= darsTint;\n#endif';
     }
     shader.fragmentShader = shader.fragmentShader
@@ -85,6 +122,8 @@ function useDarsShading(material, tint) {
       .replace('#include <aomap_fragment>',
         '#include <aomap_fragment>\n#ifdef USE_AOMAP\nreflectedLight.indirectSpecular *= ambientOcclusion;\n#endif'
         + tintGlsl);
+    // last: it expands the includes the replacements above hook onto
+    useDarsFilter(shader, material.map && material.map.image ? Math.max(material.map.image.width, 1) : 1);
   };
   material.customProgramCacheKey = () => (tint ? 'dars-shading-tint' : 'dars-shading');
   material.needsUpdate = true;
