@@ -48,6 +48,7 @@ __all__ = [
     "LIGHT_TINT_SCALE",
     "unwrap_uv",
     "compute_tangents",
+    "fold_normals",
     "rasterize_triangles",
     "sample_texture",
     "bake_pbr_textures",
@@ -480,6 +481,15 @@ def _interp(attr: np.ndarray, faces: np.ndarray, fid: np.ndarray, bary: np.ndarr
     return np.einsum("nk,nkc->nc", bary, attr[faces[fid]].astype(np.float64))
 
 
+def fold_normals(normals, surface):
+    """Field normals that face away from the surface folded onto its tangent plane: n − (n · m) m where n · m < 0
+    (m the unit surface normal; not renormalised). A tangent-space normal map stores no normal below the surface, so
+    :func:`bake_pbr_textures` writes these, and :func:`toolkit.viewbake.fit_light` shades with what the map will
+    hold. numpy arrays or torch tensors [N, 3], returned as the same type."""
+    back = (normals * surface).sum(-1)[..., None]
+    return normals - (back < 0) * back * surface
+
+
 def _unit(x: np.ndarray) -> np.ndarray:
     return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
 
@@ -556,9 +566,8 @@ def bake_pbr_textures(uvmesh: UVMesh, material_fn: MaterialFn, cfg: BakeConfig =
             rough[s:e] = _get(out, "roughness", (m,), missing)
             metal[s:e] = _get(out, "metallic", (m,), missing)
             if "normal" in out:
-                nf = _unit(_to_numpy(out["normal"], "normal").reshape(m, 3).astype(np.float64))
-                nt = np.stack([np.sum(nf * t, 1), np.sum(nf * b, 1), np.sum(nf * n, 1)], 1)
-                nt[:, 2] = np.maximum(nt[:, 2], 0.0)  # fold back-facing field normals onto the tangent plane
+                nf = fold_normals(_unit(_to_numpy(out["normal"], "normal").reshape(m, 3).astype(np.float64)), n)
+                nt = np.stack([np.sum(nf * t, 1), np.sum(nf * b, 1), np.maximum(np.sum(nf * n, 1), 0.0)], 1)
                 nmap[s:e] = _unit(nt)
             else:
                 missing.add("normal")

@@ -25,7 +25,7 @@ from typing import Any, Callable
 import torch
 
 from ._checks import ConfigError, ShapeError
-from .bake import DEFAULT_MATERIAL
+from .bake import DEFAULT_MATERIAL, fold_normals
 from .cameras import Cameras, project_points
 
 __all__ = ["ViewMaps", "project_views", "view_projected", "fit_light", "face_texture_blur", "vertex_texture_blur",
@@ -161,8 +161,7 @@ def fit_light(points: torch.Tensor, material: dict, maps: ViewMaps, sh: torch.Te
     nrm = torch.as_tensor(material["normal"], dtype=torch.float32).reshape(n, 3)
     if mesh_normals is not None:
         mn = torch.nn.functional.normalize(torch.as_tensor(mesh_normals, dtype=torch.float32).reshape(n, 3), dim=-1)
-        back = (nrm * mn).sum(-1, keepdim=True)
-        nrm = torch.where(back < 0, nrm - back * mn, nrm)
+        nrm = fold_normals(nrm, mn)
     nrm = torch.nn.functional.normalize(nrm, dim=-1, eps=1e-8)
     sh = torch.as_tensor(sh, dtype=torch.float32).reshape(9, 3)
     num, den = p.new_zeros(n, 3), p.new_zeros(n, 3)
