@@ -480,8 +480,7 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
 
         face_blur = face_texture_blur(uvmesh.vertices, uvmesh.faces, uvmesh.uvs, views, cfg.texture,
                                       cfg.view_tolerance)
-        uvmesh = replace(uvmesh, texture_blur=vertex_texture_blur(uvmesh.faces, face_blur, uvmesh.num_vertices)
-                         .numpy().astype(np.float32))
+        uvmesh = replace(uvmesh, texture_blur=vertex_texture_blur(uvmesh.faces, face_blur, uvmesh.num_vertices).numpy())
         blurred = face_blur[face_blur > 0].numpy()
         stats["texture_blur"] = ({"median": round(float(np.median(blurred)), 3),
                                   "p90": round(float(np.percentile(blurred, 90)), 3)} if blurred.size else None)

@@ -90,7 +90,7 @@ def project_views(points: torch.Tensor, maps: ViewMaps, tolerance: float = 0.1, 
     n = p.shape[0]
     sums = {k: p.new_zeros(n, *maps.values[k].shape[3:]) for k in keys}
     count = torch.zeros(n, dtype=torch.long)
-    for i, idx, r, c in _sightings(p, maps, tolerance, min_opacity):
+    for i, idx, r, c, _ in _sightings(p, maps, tolerance, min_opacity):
         for k in keys:
             sums[k].index_add_(0, idx, maps.values[k][i, r, c].to(p))
         count.index_add_(0, idx, torch.ones_like(idx))
@@ -99,8 +99,8 @@ def project_views(points: torch.Tensor, maps: ViewMaps, tolerance: float = 0.1, 
 
 
 def _sightings(p: torch.Tensor, maps: ViewMaps, tolerance: float, min_opacity: float):
-    """Per view ``i`` that sees any of the points ``p`` [N, 3] (:func:`project_views`' test): ``(i, idx, row, col)``,
-    the indices of the points it sees and their pixels."""
+    """Per view ``i`` that sees any of the points ``p`` [N, 3] (:func:`project_views`' test): ``(i, idx, row, col,
+    depth)``, the indices of the points it sees, their pixels and their depths along the camera's axis."""
     h, w = maps.depth.shape[1:]
     for i in range(len(maps.cameras)):
         uv, z = project_points(maps.cameras, i, p)
@@ -110,7 +110,7 @@ def _sightings(p: torch.Tensor, maps: ViewMaps, tolerance: float, min_opacity: f
         d = maps.depth[i, r, c]
         ok = ((z[idx] - d).abs() < tolerance * d.clamp_min(0.1)) & (maps.opacity[i, r, c] >= min_opacity)
         if bool(ok.any()):
-            yield i, idx[ok], r[ok], c[ok]
+            yield i, idx[ok], r[ok], c[ok], z[idx[ok]]
 
 
 FIT_WEIGHT_EXPONENT = 1 / 2.4 - 1
@@ -167,7 +167,7 @@ def fit_light(points: torch.Tensor, material: dict, maps: ViewMaps, sh: torch.Te
     num, den = p.new_zeros(n, 3), p.new_zeros(n, 3)
     count = torch.zeros(n, dtype=torch.long)
     origins = maps.cameras.origins.to(p)
-    for i, idx, r, c in _sightings(p, maps, tolerance, min_opacity):
+    for i, idx, r, c, _ in _sightings(p, maps, tolerance, min_opacity):
         v = torch.nn.functional.normalize(origins[i] - p[idx], dim=-1, eps=1e-8)
         shaded = shade_pbr(albedo[idx], rough[idx], metal[idx], nrm[idx], v, sh).colour
         target = maps.values["rgb"][i, r, c].to(p)
@@ -210,7 +210,6 @@ def view_projected(material_fn: Callable, maps: ViewMaps, tolerance: float = 0.1
     return fn
 
 
-
 def face_texture_blur(vertices, faces, uvs, maps: ViewMaps, texture_size: int, tolerance: float = 0.1,
                       min_opacity: float = 0.5) -> torch.Tensor:
     """How blurred the view-projected texture is on each face, in texels: the footprint of a view pixel on the
@@ -251,10 +250,10 @@ def face_texture_blur(vertices, faces, uvs, maps: ViewMaps, texture_size: int, t
     centre = p.mean(1)
     k2_sum = torch.zeros(len(f))
     n_views = torch.zeros(len(f))
-    for i, idx, _, _ in _sightings(centre, maps, tolerance, min_opacity):
-        ray = centre[idx] - maps.cameras.c2w[i, :3, 3].to(torch.float32)
+    origins = maps.cameras.origins.to(centre)
+    for i, idx, _, _, z in _sightings(centre, maps, tolerance, min_opacity):
+        ray = centre[idx] - origins[i]
         cos = ((ray * normal[idx]).sum(1).abs() / ray.norm(dim=1).clamp_min(1e-9)).clamp_min(0.2)
-        _, z = project_points(maps.cameras, i, centre[idx])
         focal2 = float(maps.cameras.fx[i]) * float(maps.cameras.fy[i])
         k2_sum[idx] += z ** 2 / (focal2 * cos ** 2 * side2[idx])
         n_views[idx] += 1

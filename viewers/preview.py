@@ -149,7 +149,6 @@ void main() {
 """
 
 _MESH_FS = """
-
 uniform sampler2D u_base_color;   // sRGB texture: reads linear
 uniform sampler2D u_orm;          // R occlusion, G roughness, B metallic (linear)
 uniform sampler2D u_normal_map;   // tangent space, (n + 1) / 2
