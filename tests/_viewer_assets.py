@@ -29,13 +29,15 @@ CUBE_SH[2] += 0.8  # brighter from above
 
 
 def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True, extras: dict | None = None,
-                  occlusion: float = 1.0, light_tint=None, texture_blur: float | None = None) -> Path:
+                  occlusion: float = 1.0, light_tint=None, texture_blur: float | None = None,
+                  occlusion_checker: bool = False) -> Path:
     """A unit cube centred at the origin as a GLB: 6 faces in a 3 x 2 atlas (``cell`` px per face, 2 px margins),
     per-face albedo / roughness / metallic (:data:`CUBE_ALBEDO` …), one semantic primitive per face.
 
     ``pattern``: a checker in the base colour and a ripple in the normal map of faces 0, 2, 4 (tilting the normal
     along the face's tangent); without it every face is flat and uniform (an analytic reference is exact).
-    ``extras``: merged into the GLB's ``extras.dars`` (e.g. a backdrop). ``occlusion``: ORM red on every face.
+    ``extras``: merged into the GLB's ``extras.dars`` (e.g. a backdrop). ``occlusion``: ORM red on every face
+    (``occlusion_checker``: times the base colour's checker, 0.4 / 1).
     ``light_tint``: an RGB light tint (linear, at most :data:`toolkit.bake.LIGHT_TINT_SCALE`) on every face, stored
     as the GLB's light-tint texture; None: no such texture. ``texture_blur``: this many texels at every vertex, as
     the GLB's ``_TEXTURE_BLUR`` attribute (the blur a view-projected bake puts in its textures); None: none.
@@ -66,7 +68,10 @@ def textured_cube(path: Path, sh=CUBE_SH, cell: int = 32, pattern: bool = True, 
     check = (((xx // 8) + (yy // 8)) % 2)[..., None] if pattern else np.ones((height, width, 1))
     linear = CUBE_ALBEDO[face] * (0.55 + 0.45 * check)
     base_color = np.round(linear_to_srgb(linear) * 255).astype(np.uint8)
-    orm = np.stack([np.full((height, width), occlusion), CUBE_ROUGHNESS[face], CUBE_METALLIC[face]], -1)
+    occ = np.full((height, width), occlusion)
+    if occlusion_checker:
+        occ = occ * (0.4 + 0.6 * (((xx // 8) + (yy // 8)) % 2))
+    orm = np.stack([occ, CUBE_ROUGHNESS[face], CUBE_METALLIC[face]], -1)
     orm = np.round(orm * 255).astype(np.uint8)
     nt = np.zeros((height, width, 3))
     nt[..., 2] = 1.0

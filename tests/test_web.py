@@ -284,6 +284,37 @@ def test_page_filters_textures_like_dars_view(serve, tmp_path):
     assert psnr_db > psnr_trilinear + 1.0, (psnr_db, psnr_trilinear)  # the page narrows its filter too
 
 
+def _without_base_colour_texture(glb: Path, out: Path) -> Path:
+    """``glb`` with its material's baseColorTexture reference removed (the other maps stay)."""
+    import pygltflib
+
+    g = pygltflib.GLTF2.load(str(glb))
+    g.materials[0].pbrMetallicRoughness.baseColorTexture = None
+    g.save(str(out))
+    return out
+
+
+def test_page_filters_the_other_maps_of_a_glb_without_base_colour(serve, tmp_path):
+    """A GLB with normal and ORM maps but no base-colour texture: the page still takes its filter's gradients (from
+    the normal map's UVs) and its blur unit (the normal map's side), so the blur changes the minified occlusion
+    checker as it does with a base colour (unset gradients would sample every map at its finest level whatever the
+    blur)."""
+    from viewers.preview import OffscreenPreview
+
+    shots = {}
+    for blur in (0.0, 64.0):
+        glb = _without_base_colour_texture(textured_cube(tmp_path / f"cube{blur:.0f}.glb", texture_blur=blur,
+                                                         occlusion_checker=True),
+                                           tmp_path / f"plain{blur:.0f}.glb")
+        (tmp_path / f"b{blur:.0f}").mkdir()
+        shots[blur], _ = _page_shot(glb, serve, tmp_path / f"b{blur:.0f}", 48, 36)
+    with OffscreenPreview(glb) as view:
+        assert view.renderer.texture_size == 96.0  # the normal map's side, not the 1-texel placeholder's
+    assert shots[0.0].std() > 0.02
+    change = np.abs(shots[0.0] - shots[64.0]).mean()
+    assert change > 0.001, change  # 0 with unset gradients
+
+
 def test_page_with_threejs_stock_shading_loads(page, serve, tmp_path):
     report = _web_check(serve(page.out_dir) + "/index.html?dpr=1&shading=three", tmp_path / "stock.png", 160, 120)
     assert report["ready"] and not report["console_errors"] and not report["page_errors"], report

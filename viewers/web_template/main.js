@@ -66,7 +66,8 @@ void RE_IndirectSpecular_Dars( const in vec3 radiance, const in vec3 irradiance,
 // The texture filter of the moderngl preview (viewers/preview.py): the mip footprint narrowed to a pixel's own
 // footprint less the blur the bake already put in the texture (the GLB's _TEXTURE_BLUR vertex attribute, texels; 0
 // without it): r² = (rho² − 2 b²) / 3, the finest level where rho² ≤ 2 b². Every map of a dars GLB shares TEXCOORD_0,
-// so one pair of gradients, taken at the top of main(), serves them all.
+// so one pair of gradients, taken at the top of main() from the first map's UVs (base colour, else normal, roughness,
+// metalness or occlusion), serves them all.
 const DARS_FILTER_PARS = /* glsl */`
 uniform float u_dars_texture_size;
 varying float vDarsBlur;
@@ -74,9 +75,20 @@ vec2 darsGx, darsGy;
 vec4 darsTexture2D( sampler2D s, vec2 uv ) { return textureGrad( s, uv, darsGx, darsGy ); }
 `;
 const DARS_FILTER_MAIN = /* glsl */`
-#ifdef USE_MAP
-  darsGx = dFdx( vMapUv );
-  darsGy = dFdy( vMapUv );
+#if defined( USE_MAP )
+  #define DARS_UV vMapUv
+#elif defined( USE_NORMALMAP )
+  #define DARS_UV vNormalMapUv
+#elif defined( USE_ROUGHNESSMAP )
+  #define DARS_UV vRoughnessMapUv
+#elif defined( USE_METALNESSMAP )
+  #define DARS_UV vMetalnessMapUv
+#elif defined( USE_AOMAP )
+  #define DARS_UV vAoMapUv
+#endif
+#ifdef DARS_UV
+  darsGx = dFdx( DARS_UV );
+  darsGy = dFdy( DARS_UV );
   float darsRho2 = max( dot( darsGx, darsGx ), dot( darsGy, darsGy ) );
   float darsB = vDarsBlur / u_dars_texture_size;
   float darsRest = darsRho2 - 2.0 * darsB * darsB;
@@ -87,6 +99,13 @@ const DARS_FILTER_MAIN = /* glsl */`
 `;
 const DARS_FILTERED_CHUNKS = ['map_fragment', 'roughnessmap_fragment', 'metalnessmap_fragment', 'normal_fragment_maps',
   'aomap_fragment'];
+
+// The unit of _TEXTURE_BLUR: the bake's atlas side, which every map of a dars GLB has; for a GLB without a
+// base-colour texture, the largest map it has (1 with none).
+function darsTextureSize(material) {
+  const maps = [material.map, material.normalMap, material.roughnessMap, material.metalnessMap, material.aoMap];
+  return Math.max(1, ...maps.map((t) => (t && t.image ? Math.max(t.image.width, t.image.height) : 0)));
+}
 
 function useDarsFilter(shader, textureSize) {
   shader.uniforms.u_dars_texture_size = { value: textureSize };
@@ -123,7 +142,7 @@ function useDarsShading(material, tint) {
         '#include <aomap_fragment>\n#ifdef USE_AOMAP\nreflectedLight.indirectSpecular *= ambientOcclusion;\n#endif'
         + tintGlsl);
     // last: it expands the includes the replacements above hook onto
-    useDarsFilter(shader, material.map && material.map.image ? Math.max(material.map.image.width, 1) : 1);
+    useDarsFilter(shader, darsTextureSize(material));
   };
   material.customProgramCacheKey = () => (tint ? 'dars-shading-tint' : 'dars-shading');
   material.needsUpdate = true;
