@@ -84,6 +84,12 @@ def test_every_metric_computed_when_data_supports_it(full_eval, run_dir):
     assert sum(n_by.values()) == doc["details"]["pixels"]["roughness_rmse"]
     pooled = math.sqrt(sum(by[k] ** 2 * n_by[k] for k in by) / sum(n_by.values()))
     assert pooled == pytest.approx(doc["roughness_rmse"], rel=1e-5)
+    # albedo per GT class: the classes pool back to the overall MAE; the level is predicted / GT mean albedo
+    by, n_by, level = mat["albedo_mae_by_class"], mat["albedo_pixels_by_class"], mat["albedo_level_by_class"]
+    assert by and set(by) == set(n_by) == set(level) and len(by) >= 2, by
+    assert sum(n_by.values()) == doc["details"]["pixels"]["albedo_mae"]
+    assert sum(by[k] * n_by[k] for k in by) / sum(n_by.values()) == pytest.approx(doc["albedo_mae"], rel=1e-5)
+    assert all(v > 0 for v in level.values())
 
 
 def test_view_consistency_patch_matches_independent_computation(full_eval, scene_gt):

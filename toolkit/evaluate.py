@@ -567,6 +567,8 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     aligned_px: list[tuple[torch.Tensor, torch.Tensor]] = []
     pooled_metallic: list[tuple[float, int]] = []
     rough_by_class: dict[str, list[tuple[float, int]]] = {}  # per GT class: (RMSE, pixels) per view
+    albedo_by_class: dict[str, list[tuple[float, int]]] = {}  # per GT class: (MAE, pixels) per view
+    albedo_sums: dict[str, torch.Tensor] = {}  # per GT class: sums of predicted and GT albedo, float64 [2, 3]
     geo_px: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = []  # |dz|, opacity, GT class (strided)
     sem_pred, sem_gt = [], []
     mat_rule = ""
@@ -606,6 +608,13 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
                         m_c = mask & (gt_lab == c)
                         if bool(m_c.any()):
                             rough_by_class.setdefault(name, []).append((float(fn(pred, gt_map, m_c)), int(m_c.sum())))
+                if extra == "albedo" and gt_lab is not None:  # per GT class: where the albedo error lies
+                    for c, name in enumerate(SEMANTIC_CLASSES):
+                        m_c = mask & (gt_lab == c)
+                        if bool(m_c.any()):
+                            albedo_by_class.setdefault(name, []).append((float(fn(pred, gt_map, m_c)), int(m_c.sum())))
+                            sums = torch.stack([pred[:, m_c].sum(1), gt_map[:, m_c].sum(1)]).double()
+                            albedo_sums[name] = albedo_sums.get(name, 0) + sums
                 if extra == "albedo":  # a strided subset of the masked pixels for the scale-aligned MAE (details)
                     stride = max(1, math.ceil(n_px * len(views) / _ALIGNED_MAX_PIXELS))
                     aligned_px.append((pred[:, mask][:, ::stride], gt_map[:, mask][:, ::stride]))
@@ -679,7 +688,11 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
             unavailable[key] = "the mask selects no pixel in any evaluated view"
     material_extra = {"albedo_mae_aligned": None, "albedo_scale": None, "metallic_mae": _pool(pooled_metallic, "mean"),
                       "roughness_rmse_by_class": {k: _pool(v, "rmse") for k, v in rough_by_class.items()} or None,
-                      "roughness_pixels_by_class": {k: sum(n for _, n in v) for k, v in rough_by_class.items()} or None}
+                      "roughness_pixels_by_class": {k: sum(n for _, n in v) for k, v in rough_by_class.items()} or None,
+                      "albedo_mae_by_class": {k: _pool(v, "mean") for k, v in albedo_by_class.items()} or None,
+                      "albedo_pixels_by_class": {k: sum(n for _, n in v) for k, v in albedo_by_class.items()} or None,
+                      "albedo_level_by_class": {k: round(float((v[0] / v[1].clamp_min(1e-12)).mean()), 4)
+                                                for k, v in albedo_sums.items()} or None}
     if metrics.get("albedo_mae") is not None and aligned_px:
         p_al, g_al = (torch.cat(t, 1)[:, None] for t in zip(*aligned_px))
         v_al, s_al = albedo_mae_aligned(p_al, g_al, torch.ones(p_al.shape[1:], dtype=torch.bool))
@@ -733,6 +746,10 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
             "roughness_rmse_by_class": "roughness RMSE on the material mask split by ground-truth class (painting "
                                        f"apart: L_mat pulls painting roughness to {PAINTING_ROUGHNESS:g}, so that "
                                        "class is the one to read against the scene's true painting roughness)",
+            "albedo_mae_by_class": "albedo MAE on the material mask split by ground-truth class "
+                                   "(albedo_pixels_by_class: the pixels each covers, so a class's share of the pooled "
+                                   "error is MAE x pixels / sum); albedo_level_by_class: the class's mean predicted "
+                                   "over mean GT albedo, averaged over channels (above 1: too bright)",
             "semantics": "argmax of rendered logits; 255 where rendered opacity < 0.5",
             "geometry": "on pixels with a ground-truth depth: median |rendered depth - GT depth| (metres, along the "
                         "camera axis) and mean rendered opacity, over all of them and per ground-truth class; "

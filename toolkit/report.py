@@ -450,6 +450,12 @@ def _eval_markdown(doc: dict, written: dict[str, Path]) -> str:
         L += [f"Roughness RMSE per ground-truth class (L_mat pulls painting roughness to {PAINTING_ROUGHNESS:g}; the "
               "painting figure is the one that shows whether the field learned the scene's own): " + ", ".join(
                   f"{k} {_fmt(v, '{:.3f}')}" for k, v in mat["roughness_rmse_by_class"].items()), ""]
+    if mat.get("albedo_mae_by_class"):
+        n_by, lv = mat.get("albedo_pixels_by_class") or {}, mat.get("albedo_level_by_class") or {}
+        total = sum(v * n_by.get(k, 0) for k, v in mat["albedo_mae_by_class"].items() if v is not None) or 1.0
+        L += ["Albedo MAE per ground-truth class (its share of the pooled error; predicted / true level, above 1 too "
+              "bright): " + ", ".join(f"{k} {_fmt(v, '{:.3f}')} ({100 * (v or 0) * n_by.get(k, 0) / total:.0f} %; "
+                                      f"{_fmt(lv.get(k), '{:.2f}')}x)" for k, v in mat["albedo_mae_by_class"].items()), ""]
     if det.get("miou_per_class"):
         L += ["Per-class IoU: " + ", ".join(f"{k} {_fmt(v, '{:.3f}')}" for k, v in det["miou_per_class"].items()), ""]
     geo = det.get("geometry")
