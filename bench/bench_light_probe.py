@@ -33,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from toolkit.cameras import Cameras, generate_rays  # noqa: E402
+from toolkit.io import write_json  # noqa: E402
 from toolkit.metrics import env_light_l2  # noqa: E402
 from toolkit.pinhole import look_at  # noqa: E402
 from toolkit.sh import latlong_directions, latlong_solid_angles, read_envmap, sh_basis  # noqa: E402
@@ -127,12 +128,9 @@ def main() -> int:
         for k in ("up", "horizon", "down"):
             v = [r["belt_probe_over_truth"][k] for r in rows]
             print(f"belt {k:8s} probe / truth: mean {np.mean(v):.2f}, range {min(v):.2f}-{max(v):.2f}")
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(rows, indent=1))
-    tmp.replace(out)
-    print(f"wrote {out}")
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    write_json(args.json, rows)
+    print(f"wrote {args.json}")
     return 0
 
 
