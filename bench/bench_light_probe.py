@@ -43,23 +43,30 @@ FACES = ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))
 BELTS = {"up": lambda z: z > 0.5, "horizon": lambda z: z.abs() <= 0.5, "down": lambda z: z < -0.5}
 
 
-def field_probe(run, point: np.ndarray, face: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The run's radiance over a cube map at ``point``: (directions [M, 3], radiance [M, 3], solid angles [M])."""
+def cube_cameras(point: np.ndarray, face: int) -> tuple[Cameras, torch.Tensor]:
+    """Six 90° cameras at ``point`` looking along ±x, ±y, ±z (:data:`FACES`), ``face`` px square, and the solid
+    angle of each of a face's pixels (row-major, float64 [face²]; the six faces' sum to 4π)."""
     c2w = [torch.from_numpy(look_at(point, point + np.array(d, float), (0, 0, 1) if abs(d[2]) < 0.5 else (0, 1, 0)))
            for d in FACES]
     f = torch.full((6,), face / 2.0)
     cams = Cameras(torch.stack(c2w).float(), f, f, f.clone(), f.clone(), torch.full((6,), face), torch.full((6,), face))
     v, u = torch.meshgrid(torch.arange(face), torch.arange(face), indexing="ij")
     x, y = ((u.reshape(-1) + 0.5) / face * 2 - 1).double(), ((v.reshape(-1) + 0.5) / face * 2 - 1).double()
-    d_omega = (2.0 / face) ** 2 / (1 + x * x + y * y) ** 1.5  # a cube-face pixel's solid angle
-    dirs, rad, w = [], [], []
+    return cams, (2.0 / face) ** 2 / (1 + x * x + y * y) ** 1.5
+
+
+def cube_directions(cams: Cameras) -> torch.Tensor:
+    """Unit directions of every pixel of the six cameras, float64 [6 · face², 3]."""
+    d = generate_rays(cams).directions.reshape(-1, 3).double().cpu()
+    return d / d.norm(dim=-1, keepdim=True)
+
+
+def field_probe(run, point: np.ndarray, face: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The run's radiance over a cube map at ``point``: (directions [M, 3], radiance [M, 3], solid angles [M])."""
+    cams, d_omega = cube_cameras(point, face)
     with torch.no_grad():
-        for i in range(6):
-            rad.append(run.render(cams, i).rgb.detach().reshape(-1, 3).double().cpu())
-            d = generate_rays(cams, [i]).directions.reshape(-1, 3).double().cpu()
-            dirs.append(d / d.norm(dim=-1, keepdim=True))
-            w.append(d_omega)
-    return torch.cat(dirs), torch.cat(rad), torch.cat(w)
+        rad = torch.cat([run.render(cams, i).rgb.detach().reshape(-1, 3).double().cpu() for i in range(6)])
+    return cube_directions(cams), rad, d_omega.repeat(6)
 
 
 def project_sh(dirs: torch.Tensor, rad: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
