@@ -86,12 +86,12 @@ def score(run_dir: str, face: int) -> dict:
     sc = run.train_scene
     if sc.sh is None:
         raise SystemExit(f"{run_dir}: its scene has no ground-truth 'sh' to score against")
-    raw = json.loads((Path(run.scene_path) / "transforms_train.json").read_text())
-    point_raw = (raw.get("render") or {}).get("sh_point")
+    point_raw = (sc.meta.get("render") or {}).get("sh_point")
     if point_raw is None:
         raise SystemExit(f"{run_dir}: its scene's JSON has no render.sh_point (a procedural gallery's probe point)")
-    # the run's world is the JSON's turned upright (a rotation, no shift or scale): carry the point with it
-    rot = sc.cameras.c2w[0, :3, :3].double().numpy() @ np.linalg.inv(np.array(raw["frames"][0]["transform_matrix"])[:3, :3])
+    # the run's world is the JSON's turned upright where load_scene did so (a rotation, no shift or scale)
+    upright = sc.meta.get("upright") or {}
+    rot = np.asarray(upright["rotation"], float) if upright.get("applied") else np.eye(3)
     point = rot @ np.asarray(point_raw, float)
     gt = sc.sh.float()
     dirs, rad, w = field_probe(run, point, face)

@@ -566,8 +566,8 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     pooled: dict[str, list[tuple[float, int]]] = {"albedo_mae": [], "roughness_rmse": [], "normal_mae": []}
     aligned_px: list[tuple[torch.Tensor, torch.Tensor]] = []
     pooled_metallic: list[tuple[float, int]] = []
-    rough_by_class: dict[str, list[tuple[float, int]]] = {}  # per GT class: (RMSE, pixels) per view
-    albedo_by_class: dict[str, list[tuple[float, int]]] = {}  # per GT class: (MAE, pixels) per view
+    # per material and GT class: (roughness RMSE or albedo MAE, pixels) per view
+    by_class: dict[str, dict[str, list[tuple[float, int]]]] = {"roughness": {}, "albedo": {}}
     albedo_sums: dict[str, torch.Tensor] = {}  # per GT class: sums of predicted and GT albedo, float64 [2, 3]
     geo_px: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = []  # |dz|, opacity, GT class (strided)
     sem_pred, sem_gt = [], []
@@ -603,18 +603,14 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
                 pred = out["albedo"].permute(2, 0, 1) if extra == "albedo" else out["roughness"]
                 gt_map = scene.load_extra(i, extra)
                 row[key] = float(fn(pred, gt_map, mask))
-                if extra == "roughness" and gt_lab is not None:  # per GT class (details.materials): painting apart
+                if gt_lab is not None:  # per GT class (details.materials): painting roughness apart, albedo's level
                     for c, name in enumerate(SEMANTIC_CLASSES):
                         m_c = mask & (gt_lab == c)
                         if bool(m_c.any()):
-                            rough_by_class.setdefault(name, []).append((float(fn(pred, gt_map, m_c)), int(m_c.sum())))
-                if extra == "albedo" and gt_lab is not None:  # per GT class: where the albedo error lies
-                    for c, name in enumerate(SEMANTIC_CLASSES):
-                        m_c = mask & (gt_lab == c)
-                        if bool(m_c.any()):
-                            albedo_by_class.setdefault(name, []).append((float(fn(pred, gt_map, m_c)), int(m_c.sum())))
-                            sums = torch.stack([pred[:, m_c].sum(1), gt_map[:, m_c].sum(1)]).double()
-                            albedo_sums[name] = albedo_sums.get(name, 0) + sums
+                            by_class[extra].setdefault(name, []).append((float(fn(pred, gt_map, m_c)), int(m_c.sum())))
+                            if extra == "albedo":
+                                sums = torch.stack([pred[:, m_c].sum(1), gt_map[:, m_c].sum(1)]).double()
+                                albedo_sums[name] = albedo_sums.get(name, 0) + sums
                 if extra == "albedo":  # a strided subset of the masked pixels for the scale-aligned MAE (details)
                     stride = max(1, math.ceil(n_px * len(views) / _ALIGNED_MAX_PIXELS))
                     aligned_px.append((pred[:, mask][:, ::stride], gt_map[:, mask][:, ::stride]))
@@ -687,10 +683,11 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
         if metrics[key] is None:
             unavailable[key] = "the mask selects no pixel in any evaluated view"
     material_extra = {"albedo_mae_aligned": None, "albedo_scale": None, "metallic_mae": _pool(pooled_metallic, "mean"),
-                      "roughness_rmse_by_class": {k: _pool(v, "rmse") for k, v in rough_by_class.items()} or None,
-                      "roughness_pixels_by_class": {k: sum(n for _, n in v) for k, v in rough_by_class.items()} or None,
-                      "albedo_mae_by_class": {k: _pool(v, "mean") for k, v in albedo_by_class.items()} or None,
-                      "albedo_pixels_by_class": {k: sum(n for _, n in v) for k, v in albedo_by_class.items()} or None,
+                      "roughness_rmse_by_class": {k: _pool(v, "rmse") for k, v in by_class["roughness"].items()}
+                      or None,
+                      "albedo_mae_by_class": {k: _pool(v, "mean") for k, v in by_class["albedo"].items()} or None,
+                      **{f"{m}_pixels_by_class": {k: sum(n for _, n in v) for k, v in by_class[m].items()} or None
+                         for m in ("roughness", "albedo")},
                       "albedo_level_by_class": {k: round(float((v[0] / v[1].clamp_min(1e-12)).mean()), 4)
                                                 for k, v in albedo_sums.items()} or None}
     if metrics.get("albedo_mae") is not None and aligned_px:

@@ -358,7 +358,8 @@ class PreviewRenderer:
         self.base_color = self._texture(images.get("base_color"), np.array([188, 188, 188], np.uint8), srgb=True)
         # the unit of the _TEXTURE_BLUR attribute: the bake's atlas side (every map of a dars GLB has it); the
         # largest map present when a GLB has no base-colour texture
-        self.texture_size = float(max(max(self._texture_sizes(images)), 1))
+        self.texture_size = float(max((max(images[k].shape[:2]) for k in ("base_color", "orm", "normal")
+                                       if images.get(k) is not None), default=1))
         self.orm = self._texture(images.get("orm"), np.array([255, 255, 0], np.uint8))
         self.normal_map = self._texture(images.get("normal"), np.array([128, 128, 255], np.uint8))
         self.light_tint = self._texture(images.get("light_tint"), np.array([255, 255, 255], np.uint8))
@@ -377,12 +378,6 @@ class PreviewRenderer:
     def _keep(self, obj):
         self._objects.append(obj)
         return obj
-
-    @staticmethod
-    def _texture_sizes(images: dict) -> list[int]:
-        """Sides (texels) of the GLB's material maps, base colour first; [1] when it has none."""
-        sizes = [max(images[k].shape[:2]) for k in ("base_color", "orm", "normal") if images.get(k) is not None]
-        return sizes or [1]
 
     def _texture(self, image: np.ndarray | None, default_rgb: np.ndarray, srgb: bool = False):
         import moderngl
