@@ -344,3 +344,55 @@ def test_bake_mesh_fits_the_occlusion_and_tint_to_the_field_colour():
         _, tex, stats = bake_mesh(_floor_quad(), _blue, cfg, views=maps, **kw)
         assert stats["light_fit"] is False and (tex.orm[tex.mask][:, 0] == 255).all()
         assert np.allclose(tex.light_tint[tex.mask] / 255.0 * LIGHT_TINT_SCALE, 1.0, atol=1 / 255)
+
+
+def test_the_light_fit_projects_the_texels_once():
+    """bake_mesh's light fit reuses the view projection of the albedo (``looks``): the bake projects points into the
+    views as often with the fit as without it, and the shared projection gives what a fresh one does."""
+    import toolkit.viewbake as vb
+    from toolkit.asset import AssetConfig, bake_mesh
+    from toolkit.viewbake import fit_light, sightings
+
+    maps = _lit_maps((0.12, 0.06, 0.02))
+    calls = []
+    real = vb._sightings
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    counts = {}
+    for fit in (True, False):
+        calls.clear()
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(vb, "_sightings", counting)
+            _, _, stats = bake_mesh(_floor_quad(), _blue, AssetConfig(texture=64, light_fit=fit), views=maps, sh=_sh())
+        assert stats["light_fit"] is fit
+        counts[fit] = len(calls)
+    assert counts[True] == counts[False] > 0
+    pts = torch.tensor([[0.1, 0.1, 0.0], [-0.2, 0.05, 0.0], [9.0, 9.0, 0.0]])
+    material = {"albedo": torch.full((3, 3), 0.5), "roughness": torch.full((3,), 0.5), "metallic": torch.zeros(3),
+                "normal": torch.tensor([[0.0, 0.0, 1.0]]).expand(3, 3)}
+    looks = sightings(pts, maps)
+    for a, b in zip(fit_light(pts, material, maps, _sh(), looks=looks), fit_light(pts, material, maps, _sh())):
+        assert torch.equal(a, b)
+    for a, b in zip(project_views(pts, maps, looks=looks)[0].values(), project_views(pts, maps)[0].values()):
+        assert torch.equal(a, b)
+
+
+def test_bake_mesh_multiplies_the_fitted_light_by_the_correction():
+    """``light_correction`` (the viewer fit's per-vertex factor) scales the fitted occlusion x tint, channel by
+    channel, and leaves the albedo alone."""
+    from toolkit.asset import AssetConfig, bake_mesh
+    from toolkit.bake import LIGHT_TINT_SCALE
+
+    maps = _lit_maps((0.12, 0.06, 0.02))
+    light = {}
+    for name, corr in (("plain", None), ("corrected", lambda p: torch.tensor([0.5, 1.0, 2.0]).expand(len(p), 3))):
+        _, tex, _ = bake_mesh(_floor_quad(), _blue, AssetConfig(texture=64), views=maps, sh=_sh(),
+                              light_correction=corr)
+        occ = tex.orm[tex.mask][:, :1] / 255.0
+        light[name] = (occ * tex.light_tint[tex.mask] / 255.0 * LIGHT_TINT_SCALE).mean(0), tex.base_color[tex.mask]
+    ratio = light["corrected"][0] / light["plain"][0]
+    assert np.allclose(ratio, [0.5, 1.0, 2.0], rtol=0.05), ratio
+    assert np.array_equal(light["corrected"][1], light["plain"][1])

@@ -640,6 +640,7 @@ def test_baked_sample_matches_the_field_render(tmp_path_factory, gl):
     bake = json.loads((asset_dir / "mesh_stats.json").read_text())["bake"]
     assert bake["bake_from"] == "views" and bake["views"]["count"] == 80, bake  # the default: the field's renders
     assert bake["views"]["texels_seen"] > 0.3, bake
+    assert bake["viewer_fit"]["passes"] == 1 and bake["viewer_fit"]["vertices_corrected"] > 0.1, bake  # the default
     backdrop = load_glb(asset_dir / "scene.glb").backdrop  # the field's colour, for what the mesh leaves out
     assert backdrop is not None and backdrop.shape == (32, 64) and 0.0 < backdrop.visibility.max() <= 1.0
     run = load_run(run_dir)

@@ -127,6 +127,14 @@ class AssetConfig:
     gallery's sky, the white behind an object, the holes in the mesh): the field's rendered colour in the directions
     where the mesh leaves training pixels uncovered, elsewhere its learned background weighted by how much of it the
     training renders saw. Needs the renders of ``bake_from="views"`` (rendered for it alone with ``points``)."""
+    viewer_fit: int = 1
+    """With ``light_fit``: after the bake, render the GLB with our viewer at the views it was baked from, fit one
+    RGB light factor per mesh vertex that brings what the viewer shows to the field's colour there
+    (:func:`viewers.refit.viewer_light_correction`: where the mesh and the field's depth part, and where the
+    viewer's filter averages texels), and re-bake with the light times that factor; repeated this many times (0:
+    off). Needs the viewer passed to :func:`build_asset` (``viewer_correction``: ``dars export-asset`` passes
+    :func:`viewers.refit.viewer_correction`) and a headless OpenGL context; without either the bake is kept as it
+    is and ``mesh_stats.json`` says why (README, "The GLB refitted at its own views")."""
     device: str = "cpu"
     """Device the field is queried on."""
 
@@ -167,6 +175,8 @@ class AssetConfig:
             raise ConfigError(f"--view-rays {self.view_rays} must be ≥ 64")
         if not 0.0 < self.view_tolerance <= 0.5:
             raise ConfigError(f"--view-tolerance {self.view_tolerance} must be in (0, 0.5]")
+        if not 0 <= self.viewer_fit <= 8:
+            raise ConfigError(f"--viewer-fit {self.viewer_fit} must be in 0..8 (passes; 0 = off)")
 
 
 @dataclass
@@ -380,8 +390,8 @@ def _with_occlusion(texel_fn, scale: float):
     """``texel_fn`` with its ``light_gain`` turned into ``occlusion`` = gain / ``scale`` clamped to [0, 1]."""
     import torch
 
-    def fn(points, normals=None):
-        out = dict(texel_fn(points, normals))
+    def fn(points, normals=None, looks=None):
+        out = dict(texel_fn(points, normals, looks))
         gain = torch.as_tensor(out.pop("light_gain"), dtype=torch.float32)
         out["occlusion"] = (gain / scale).clamp(0.0, 1.0)
         return out
@@ -389,25 +399,30 @@ def _with_occlusion(texel_fn, scale: float):
     return fn
 
 
-def _with_fitted_light(texel_fn, views, sh, scale: float, tolerance: float, tint: bool):
+def _with_fitted_light(texel_fn, views, sh, scale: float, tolerance: float, tint: bool, correction=None):
     """``texel_fn`` (after :func:`_with_occlusion`) with the occlusion (and, with ``tint``, the light tint) of every
     texel a view sees replaced by the light the viewer needs there (:func:`toolkit.viewbake.fit_light`): the fitted
     multiplier m is split into occlusion = luminance(m) / ``scale`` clamped to [0, 1] and tint = m / (occlusion ×
-    ``scale``) clamped to [0, LIGHT_TINT_SCALE] (the tint takes up what the occlusion clamps)."""
+    ``scale``) clamped to [0, LIGHT_TINT_SCALE] (the tint takes up what the occlusion clamps). The points are
+    projected into the views once, for both (:func:`toolkit.viewbake.sightings`). ``correction``: a callable
+    points -> float [N, 3] that multiplies m (:func:`build_asset`'s viewer fit)."""
     import torch
 
     from .bake import DEFAULT_MATERIAL, LIGHT_TINT_SCALE
     from .train.run import _luminance
-    from .viewbake import fit_light
+    from .viewbake import fit_light, sightings
 
     def fn(points, normals=None):
-        out = dict(texel_fn(points, normals))
+        looks = sightings(points, views, tolerance)
+        out = dict(texel_fn(points, normals, looks))
         n = torch.as_tensor(points).reshape(-1, 3).shape[0]
         material = {k: out[k] if k in out else torch.as_tensor(DEFAULT_MATERIAL[k], dtype=torch.float32).expand(n)
                     for k in ("roughness", "metallic")}
         material["albedo"] = out["albedo"]
         material["normal"] = out["normal"] if "normal" in out else normals
-        m, count = fit_light(points, material, views, sh, tolerance, mesh_normals=normals)
+        m, count = fit_light(points, material, views, sh, tolerance, mesh_normals=normals, looks=looks)
+        if correction is not None:
+            m = m * correction(points)
         seen = count > 0
         occ = (_luminance(m) / scale).clamp(0.0, 1.0)
         out["occlusion"] = torch.where(seen, occ, torch.as_tensor(out["occlusion"], dtype=torch.float32).reshape(n))
@@ -421,7 +436,7 @@ def _with_fitted_light(texel_fn, views, sh, scale: float, tolerance: float, tint
 
 
 def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=None,
-              views=None, sh=None) -> tuple[UVMesh, PBRTextures, dict]:
+              views=None, sh=None, light_correction=None) -> tuple[UVMesh, PBRTextures, dict]:
     """The bake half: UV-unwrap ``mesh``, label its faces and bake PBR textures from ``material_fn``; ``log``: an
     optional callable told when the unwrap (xatlas, which reports no progress) starts and ends.
 
@@ -431,6 +446,8 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
             ``cfg.light_occlusion`` is on, the occlusion too; None: point queries only.
         sh: float [9, 3] the run's SH light: with ``cfg.light_fit`` and views holding the field's colour, the
             occlusion and tint are fitted to it (:func:`_with_fitted_light`).
+        light_correction: with that fit, a callable points -> float [N, 3] the fitted light is multiplied by
+            (:func:`build_asset`'s ``viewer_fit``); None: none.
 
     Returns:
         (uvmesh, textures, statistics ``texture``, ``supersample``, ``uv_vertices``, timings, ``chart_coverage``,
@@ -467,7 +484,8 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
             texel_fn = _with_occlusion(texel_fn, scale)
             fitted = cfg.light_fit and sh is not None and "rgb" in views.values
             if fitted:
-                texel_fn = _with_fitted_light(texel_fn, views, sh, scale, cfg.view_tolerance, "light_tint" in keys)
+                texel_fn = _with_fitted_light(texel_fn, views, sh, scale, cfg.view_tolerance, "light_tint" in keys,
+                                              light_correction)
     textures = bake_pbr_textures(uvmesh, texel_fn, BakeConfig(size=cfg.texture, supersample=cfg.supersample,
                                                                ao_samples=cfg.ao_samples, device=cfg.device))
     stats = {"texture": cfg.texture, "supersample": cfg.supersample, "uv_vertices": uvmesh.num_vertices,
@@ -490,7 +508,43 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
     return uvmesh, textures, stats
 
 
-def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = AssetConfig(), log=None) -> Asset:
+def _viewer_fit(mesh, field, maps, cfg: AssetConfig, uvmesh, textures, bake_stats: dict, log, correction):
+    """``cfg.viewer_fit`` passes of: the per-vertex light factor the viewer still needs at the bake's views
+    (``correction(mesh, uvmesh, textures, sh, gltf_extras, maps)``: :func:`viewers.refit.viewer_correction`),
+    multiplied into the running one, then a re-bake with the light times it. Returns the last bake; its statistics
+    gain ``viewer_fit`` (passes, the share of vertices corrected, the factor's 5/50/95 % quantiles over them), or
+    the reason it was skipped (no viewer given, no headless OpenGL)."""
+    from .viewbake import VertexValues
+
+    if correction is None:
+        return uvmesh, textures, {**bake_stats, "viewer_fit": {
+            "skipped": "build_asset was given no viewer_correction (viewers.refit.viewer_correction; "
+                       "dars export-asset passes it)"}}
+    total = np.ones((mesh.num_vertices, 3), np.float32)
+    for k in range(cfg.viewer_fit):
+        if log is not None:
+            log(f"[dars] viewer fit {k + 1}/{cfg.viewer_fit}: rendering the GLB at the {len(maps.cameras)} views")
+        sh = field.sh * bake_stats["light_scale"] if bake_stats["light_scale"] != 1.0 else field.sh
+        draft = Asset(mesh, uvmesh, textures, sh, {"vertices": mesh.num_vertices, "faces": mesh.num_faces,
+                                                   "area_m2": 0.0, "method": "draft", "bake": bake_stats})
+        try:
+            factor = correction(mesh, uvmesh, textures, sh, draft.gltf_extras(), maps)
+        except DarsError as e:  # no OpenGL here: keep the bake as it is, and say so
+            if log is not None:
+                log(f"[dars] viewer fit skipped: {e}")
+            return uvmesh, textures, {**bake_stats, "viewer_fit": {"skipped": str(e)}}
+        total = total * np.asarray(factor, np.float32)
+        uvmesh, textures, bake_stats = bake_mesh(mesh, field.material_fn, cfg, log=log, views=maps, sh=field.sh,
+                                                 light_correction=VertexValues(mesh, total))
+    moved = np.abs(total - 1.0).max(1) > 0
+    q = np.quantile(total[moved], [0.05, 0.5, 0.95], axis=0).mean(1) if moved.any() else np.ones(3)
+    return uvmesh, textures, {**bake_stats, "viewer_fit": {"passes": cfg.viewer_fit,
+                                                           "vertices_corrected": round(float(moved.mean()), 4),
+                                                           "factor_q05_q50_q95": [round(float(x), 4) for x in q]}}
+
+
+def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = AssetConfig(), log=None,
+                viewer_correction=None) -> Asset:
     """Field → mesh → baked textures: :func:`build_mesh`, then :func:`bake_mesh` (from the field's renders at the
     training views, :func:`view_maps`, by default).
 
@@ -498,6 +552,9 @@ def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = Asset
         run: a run directory, a loaded :class:`~toolkit.train.run.Run` or :class:`~toolkit.train.run.FieldCallables`.
         cfg: the options.
         log: optional callable for progress lines (:func:`bake_mesh`).
+        viewer_correction: for ``cfg.viewer_fit``, the viewer that draws the draft GLB and returns its per-vertex
+            light factor: :func:`viewers.refit.viewer_correction` (what ``dars export-asset`` passes; ``toolkit``
+            never imports the viewers itself). None: no viewer fit, and the statistics say so.
 
     Raises:
         DarsError: no such run, or an empty mesh.
@@ -507,6 +564,9 @@ def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = Asset
     maps = view_maps(field, cfg, log)
     uvmesh, textures, bake_stats = bake_mesh(mesh, field.material_fn, cfg, log=log,
                                              views=maps if cfg.bake_from == "views" else None, sh=field.sh)
+    if bake_stats["light_fit"] and cfg.viewer_fit > 0:
+        uvmesh, textures, bake_stats = _viewer_fit(mesh, field, maps, cfg, uvmesh, textures, bake_stats, log,
+                                                   viewer_correction)
     stats["bake"] = bake_stats
     backdrop = build_backdrop(field, maps, cfg, uvmesh)
     if backdrop is not None:

@@ -22,14 +22,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable
 
+import numpy as np
 import torch
 
 from ._checks import ConfigError, ShapeError
 from .bake import DEFAULT_MATERIAL, fold_normals
 from .cameras import Cameras, project_points
 
-__all__ = ["ViewMaps", "project_views", "view_projected", "fit_light", "face_texture_blur", "vertex_texture_blur",
-           "FIT_WEIGHT_EXPONENT", "VIEW_DEFAULTS"]
+__all__ = ["ViewMaps", "sightings", "project_views", "view_projected", "fit_light", "face_texture_blur",
+           "vertex_texture_blur", "VertexValues", "FIT_WEIGHT_EXPONENT", "VIEW_DEFAULTS"]
 
 VIEW_DEFAULTS: dict[str, object] = {**DEFAULT_MATERIAL, "light_gain": 1.0, "light_tint": (1.0, 1.0, 1.0)}
 """What a point no view sees gets for a key the material callable lacks: the bake's defaults, and no change of
@@ -69,7 +70,8 @@ class ViewMaps:
 
 
 def project_views(points: torch.Tensor, maps: ViewMaps, tolerance: float = 0.1, min_opacity: float = 0.5,
-                  keys: tuple[str, ...] | None = None) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+                  keys: tuple[str, ...] | None = None,
+                  looks: list | None = None) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
     """The mean of ``maps``' values over the views that see each point.
 
     Args:
@@ -79,6 +81,8 @@ def project_views(points: torch.Tensor, maps: ViewMaps, tolerance: float = 0.1, 
             floored at 0.1 m).
         min_opacity: ... and the pixel's rendered opacity is at least this.
         keys: which values (default: all).
+        looks: these points' :func:`sightings` at ``maps`` (with the same ``tolerance`` and ``min_opacity``), when a
+            caller that projects them again (:func:`fit_light`) computed them once for both; None: computed here.
 
     Returns:
         (means, count): name -> float [N(, C)] means (0 where no view sees the point) and int [N] how many views do.
@@ -90,7 +94,7 @@ def project_views(points: torch.Tensor, maps: ViewMaps, tolerance: float = 0.1, 
     n = p.shape[0]
     sums = {k: p.new_zeros(n, *maps.values[k].shape[3:]) for k in keys}
     count = torch.zeros(n, dtype=torch.long)
-    for i, idx, r, c, _ in _sightings(p, maps, tolerance, min_opacity):
+    for i, idx, r, c, _ in (sightings(p, maps, tolerance, min_opacity) if looks is None else looks):
         for k in keys:
             sums[k].index_add_(0, idx, maps.values[k][i, r, c].to(p))
         count.index_add_(0, idx, torch.ones_like(idx))
@@ -98,9 +102,15 @@ def project_views(points: torch.Tensor, maps: ViewMaps, tolerance: float = 0.1, 
     return {k: v / (seen if v.dim() == 1 else seen[:, None]) for k, v in sums.items()}, count
 
 
+def sightings(points: torch.Tensor, maps: ViewMaps, tolerance: float = 0.1, min_opacity: float = 0.5) -> list:
+    """Which views see which of ``points`` [N, 3] (:func:`project_views`' test), as a list with one ``(i, idx, row,
+    col, depth)`` per view ``i`` that sees any: the indices of the points it sees, their pixels and their depths
+    along the camera's axis. Computed once, it serves both :func:`project_views` and :func:`fit_light` (``looks``)."""
+    return list(_sightings(torch.as_tensor(points, dtype=torch.float32).reshape(-1, 3), maps, tolerance, min_opacity))
+
+
 def _sightings(p: torch.Tensor, maps: ViewMaps, tolerance: float, min_opacity: float):
-    """Per view ``i`` that sees any of the points ``p`` [N, 3] (:func:`project_views`' test): ``(i, idx, row, col,
-    depth)``, the indices of the points it sees, their pixels and their depths along the camera's axis."""
+    """:func:`sightings`, one view at a time."""
     h, w = maps.depth.shape[1:]
     for i in range(len(maps.cameras)):
         uv, z = project_points(maps.cameras, i, p)
@@ -122,7 +132,8 @@ costs the bundled sample 0.3 dB."""
 
 
 def fit_light(points: torch.Tensor, material: dict, maps: ViewMaps, sh: torch.Tensor, tolerance: float = 0.1,
-              min_opacity: float = 0.5, mesh_normals: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+              min_opacity: float = 0.5, mesh_normals: torch.Tensor | None = None,
+              looks: list | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The per-point RGB light multiplier ``m`` that makes a viewer's own shading reproduce the field's colour at
     the views that see each point.
 
@@ -145,6 +156,7 @@ def fit_light(points: torch.Tensor, material: dict, maps: ViewMaps, sh: torch.Te
         tolerance, min_opacity: :func:`project_views`.
         mesh_normals: float [N, 3] the mesh normals: a field normal facing away from one is folded onto its tangent
             plane, as the normal map stores it (:func:`toolkit.bake.bake_pbr_textures`).
+        looks: :func:`project_views`' ``looks``.
 
     Returns:
         (m, count): float [N, 3] (1 where no view sees the point or the shading is black), int [N] views.
@@ -167,7 +179,7 @@ def fit_light(points: torch.Tensor, material: dict, maps: ViewMaps, sh: torch.Te
     num, den = p.new_zeros(n, 3), p.new_zeros(n, 3)
     count = torch.zeros(n, dtype=torch.long)
     origins = maps.cameras.origins.to(p)
-    for i, idx, r, c, _ in _sightings(p, maps, tolerance, min_opacity):
+    for i, idx, r, c, _ in (sightings(p, maps, tolerance, min_opacity) if looks is None else looks):
         v = torch.nn.functional.normalize(origins[i] - p[idx], dim=-1, eps=1e-8)
         shaded = shade_pbr(albedo[idx], rough[idx], metal[idx], nrm[idx], v, sh).colour
         target = maps.values["rgb"][i, r, c].to(p)
@@ -184,14 +196,15 @@ def view_projected(material_fn: Callable, maps: ViewMaps, tolerance: float = 0.1
                    keys: tuple[str, ...] = ("albedo",), stats: dict[str, Any] | None = None) -> Callable:
     """``material_fn`` with ``keys`` taken from the views that see each point (:func:`project_views`); points no
     view sees keep ``material_fn``'s value. ``stats`` (a dict) accumulates ``points`` and ``seen`` (points at least
-    one view saw) over the calls."""
+    one view saw) over the calls. The callable takes ``(points, normals=None, looks=None)``: ``looks``, the points'
+    :func:`sightings`, when the caller needs them too (:func:`toolkit.asset.bake_mesh`'s light fit)."""
     missing = [k for k in keys if k not in maps.values]
     if missing:
         raise ConfigError(f"view-projected bake of {missing}: the view maps hold only {sorted(maps.values)}")
 
-    def fn(points, normals=None):
+    def fn(points, normals=None, looks=None):
         out = dict(material_fn(points, normals))
-        means, count = project_views(points, maps, tolerance, min_opacity, keys)
+        means, count = project_views(points, maps, tolerance, min_opacity, keys, looks)
         seen = count > 0
         for k in keys:
             if k in out:
@@ -272,3 +285,37 @@ def vertex_texture_blur(faces, face_blur, num_vertices: int) -> torch.Tensor:
     total = torch.zeros(num_vertices).index_add_(0, f.reshape(-1), b.repeat_interleave(3))
     count = torch.zeros(num_vertices).index_add_(0, f.reshape(-1), has.repeat_interleave(3))
     return torch.where(count > 0, total / count.clamp_min(1.0), torch.zeros(num_vertices))
+
+
+class VertexValues:
+    """``values`` [V, C] of ``mesh``'s vertices, read at any points by barycentric interpolation on the closest
+    face (the texels of a bake lie on the mesh, so that is their own face): how :func:`toolkit.asset.build_asset`'s
+    viewer fit carries its per-vertex light factor to the texels.
+
+    Example:
+        >>> VertexValues(mesh, np.ones((mesh.num_vertices, 3)))(points).shape      # doctest: +SKIP
+        torch.Size([N, 3])
+    """
+
+    def __init__(self, mesh, values: np.ndarray) -> None:
+        import open3d as o3d
+
+        self.faces = np.asarray(mesh.faces, np.int64)
+        self.values = np.asarray(values, np.float32)
+        if self.values.shape[0] != len(np.asarray(mesh.vertices)):
+            raise ValueError(f"VertexValues: {self.values.shape[0]} values for {len(np.asarray(mesh.vertices))} "
+                             "vertices")
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                                 o3d.core.Tensor(self.faces.astype(np.uint32)))
+
+    def __call__(self, points) -> torch.Tensor:
+        import open3d as o3d
+
+        p = torch.as_tensor(points, dtype=torch.float32).reshape(-1, 3).cpu().numpy()
+        q = self.scene.compute_closest_points(o3d.core.Tensor(p))
+        prim = q["primitive_ids"].numpy().astype(np.int64)
+        b = q["primitive_uvs"].numpy()
+        bary = np.stack([1.0 - b[:, 0] - b[:, 1], b[:, 0], b[:, 1]], 1)
+        v = self.values[self.faces[prim]]  # [N, 3 corners, C]
+        return torch.as_tensor((v * bary[:, :, None]).sum(1), dtype=torch.float32)

@@ -94,6 +94,10 @@ def add_bake_options(q: argparse.ArgumentParser, backdrop: bool = True) -> None:
                        help="--bake-from views: take the occlusion and light tint from the field's light gain and "
                             "tint as they are, instead of fitting them so that the viewer's shading of the baked "
                             "textures reproduces the field's colour at the training views")
+        q.add_argument("--viewer-fit", type=number(int, min=0, max=8), default=1, metavar="PASSES",
+                       help="with the light fit: render the GLB with dars view's renderer at the views it was baked "
+                            "from, fit a per-vertex light factor that brings what the viewer shows to the field's "
+                            "colour, and re-bake; this many passes (default 1; 0 = off; needs headless OpenGL)")
         q.add_argument("--no-backdrop", dest="backdrop", action="store_false",
                        help="store no backdrop in the GLB (what the viewers draw where the mesh is not — a gallery's "
                             "sky, the white behind an object, holes in the mesh — taken from the field's renders)")
@@ -140,7 +144,7 @@ def asset_config(args: argparse.Namespace):
     names = ("method", "resolution", "level", "level_quantile", "faces", "simplify", "min_component", "min_seen",
              "keep_unseen", "depth_samples", "depth_min_opacity", "depth_rays", "texture", "supersample", "ao_samples",
              "bake_from", "view_rays", "normals_from", "view_tolerance", "light_occlusion", "light_tint", "light_fit",
-             "backdrop", "device")
+             "viewer_fit", "backdrop", "device")
     return AssetConfig(**{k: getattr(args, k) for k in names if hasattr(args, k)})
 
 
@@ -223,7 +227,9 @@ def cmd_export_asset(args: argparse.Namespace) -> int:
     cfg = asset_config(args)
     _require_run(args.run)
     out = _out(args, "", ASSET_FILES)
-    asset = build_asset(args.run, cfg, log=log)
+    from viewers.refit import viewer_correction
+
+    asset = build_asset(args.run, cfg, log=log, viewer_correction=viewer_correction)
     stats = asset.stats
     with out:
         save_mesh(asset.mesh, out.path / "mesh.ply")

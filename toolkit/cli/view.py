@@ -152,10 +152,12 @@ def _glb_for(source: Path, out: Path, args, cfg) -> tuple[Path, dict]:
     if (source / "scene.glb").is_file():
         return source / "scene.glb", {}
     if (source / "checkpoint.pt").is_file() and (source / "config.json").is_file():
+        from viewers.refit import viewer_correction
+
         from ..asset import build_asset
 
         print(f"[dars] {source} is a training run: exporting its asset first (mesh + bake)", file=sys.stderr)
-        asset = build_asset(source, cfg)
+        asset = build_asset(source, cfg, viewer_correction=viewer_correction)
         out.mkdir(parents=True, exist_ok=True)
         return export_glb(asset, out / "scene.glb", sh=asset.sh), asset.stats
     raise DarsError(f"{source}: expected a .glb, an `export-asset` directory (with scene.glb) or a RUN directory "
