@@ -86,7 +86,8 @@ def test_build_asset_viewer_fit_keeps_the_bake_without_opengl_and_refits_with_it
     mesh = _floor_quad()
     uvmesh, tex, stats = bake_mesh(mesh, _blue, cfg, views=maps, sh=_sh())
     field = SimpleNamespace(material_fn=_blue, sh=_sh())
-    _, tex1, stats1 = _viewer_fit(mesh, field, maps, cfg, uvmesh, tex, stats, None, viewer_correction)
+    mesh_stats = {"vertices": mesh.num_vertices, "faces": mesh.num_faces, "area_m2": 1.0, "method": "mc"}
+    _, tex1, stats1 = _viewer_fit(mesh, field, maps, cfg, uvmesh, tex, stats, None, viewer_correction, mesh_stats)
     assert stats1["viewer_fit"]["passes"] == 1 and stats1["light_fit"] is True
     assert 0 < stats1["viewer_fit"]["vertices_corrected"] <= 1
     assert np.array_equal(tex1.base_color, tex.base_color)
@@ -94,8 +95,8 @@ def test_build_asset_viewer_fit_keeps_the_bake_without_opengl_and_refits_with_it
     def no_gl(*a, **k):
         raise DarsError("could not create a headless OpenGL 3.3 context on EGL (test)")
 
-    _, tex2, stats2 = _viewer_fit(mesh, field, maps, cfg, uvmesh, tex, stats, None, no_gl)
+    _, tex2, stats2 = _viewer_fit(mesh, field, maps, cfg, uvmesh, tex, stats, None, no_gl, mesh_stats)
     assert "headless OpenGL" in stats2["viewer_fit"]["skipped"]
     assert tex2 is tex
-    _, tex3, stats3 = _viewer_fit(mesh, field, maps, cfg, uvmesh, tex, stats, None, None)
+    _, tex3, stats3 = _viewer_fit(mesh, field, maps, cfg, uvmesh, tex, stats, None, None, mesh_stats)
     assert "viewers.refit.viewer_correction" in stats3["viewer_fit"]["skipped"] and tex3 is tex

@@ -508,12 +508,21 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
     return uvmesh, textures, stats
 
 
-def _viewer_fit(mesh, field, maps, cfg: AssetConfig, uvmesh, textures, bake_stats: dict, log, correction):
+def _glb_sh(sh, bake_stats: dict):
+    """The SH a GLB of this bake carries: the run's times the bake's ``light_scale`` (the occlusion channel holds
+    the light gain over it), or None without an SH."""
+    scale = bake_stats["light_scale"]
+    return sh * scale if sh is not None and scale != 1.0 else sh
+
+
+def _viewer_fit(mesh, field, maps, cfg: AssetConfig, uvmesh, textures, bake_stats: dict, log, correction,
+                mesh_stats: dict):
     """``cfg.viewer_fit`` passes of: the per-vertex light factor the viewer still needs at the bake's views
     (``correction(mesh, uvmesh, textures, sh, gltf_extras, maps)``: :func:`viewers.refit.viewer_correction`),
     multiplied into the running one, then a re-bake with the light times it. Returns the last bake; its statistics
     gain ``viewer_fit`` (passes, the share of vertices corrected, the factor's 5/50/95 % quantiles over them), or
-    the reason it was skipped (no viewer given, no headless OpenGL)."""
+    the reason it was skipped (no viewer given, no headless OpenGL). ``mesh_stats``: :func:`build_mesh`'s, for the
+    draft GLB's extras."""
     from .viewbake import VertexValues
 
     if correction is None:
@@ -524,9 +533,8 @@ def _viewer_fit(mesh, field, maps, cfg: AssetConfig, uvmesh, textures, bake_stat
     for k in range(cfg.viewer_fit):
         if log is not None:
             log(f"[dars] viewer fit {k + 1}/{cfg.viewer_fit}: rendering the GLB at the {len(maps.cameras)} views")
-        sh = field.sh * bake_stats["light_scale"] if bake_stats["light_scale"] != 1.0 else field.sh
-        draft = Asset(mesh, uvmesh, textures, sh, {"vertices": mesh.num_vertices, "faces": mesh.num_faces,
-                                                   "area_m2": 0.0, "method": "draft", "bake": bake_stats})
+        sh = _glb_sh(field.sh, bake_stats)
+        draft = Asset(mesh, uvmesh, textures, sh, {**mesh_stats, "bake": bake_stats})
         try:
             factor = correction(mesh, uvmesh, textures, sh, draft.gltf_extras(), maps)
         except DarsError as e:  # no OpenGL here: keep the bake as it is, and say so
@@ -566,7 +574,7 @@ def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = Asset
                                              views=maps if cfg.bake_from == "views" else None, sh=field.sh)
     if bake_stats["light_fit"] and cfg.viewer_fit > 0:
         uvmesh, textures, bake_stats = _viewer_fit(mesh, field, maps, cfg, uvmesh, textures, bake_stats, log,
-                                                   viewer_correction)
+                                                   viewer_correction, stats)
     stats["bake"] = bake_stats
     backdrop = build_backdrop(field, maps, cfg, uvmesh)
     if backdrop is not None:
@@ -574,10 +582,7 @@ def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = Asset
         stats["backdrop"] = {"height": backdrop.shape[0], "width": backdrop.shape[1],
                              "texels_seen": round(float((vis > 0).mean()), 4),
                              "mean_visibility": round(float(vis.mean()), 4)}
-    sh = field.sh
-    if sh is not None and bake_stats["light_scale"] != 1.0:  # the occlusion carries gain / s: the light is s times
-        sh = sh * bake_stats["light_scale"]
-    return Asset(mesh, uvmesh, textures, sh, stats, backdrop)
+    return Asset(mesh, uvmesh, textures, _glb_sh(field.sh, bake_stats), stats, backdrop)
 
 
 def write_textures(textures: PBRTextures, out: str | Path) -> None:
