@@ -100,3 +100,31 @@ def test_build_asset_viewer_fit_keeps_the_bake_without_opengl_and_refits_with_it
     assert tex2 is tex
     _, tex3, stats3 = _viewer_fit(mesh, field, maps, cfg, uvmesh, tex, stats, None, None, mesh_stats)
     assert "viewers.refit.viewer_correction" in stats3["viewer_fit"]["skipped"] and tex3 is tex
+
+
+def test_rebake_reuses_the_unwrap_and_gives_the_same_textures(monkeypatch):
+    """bake_mesh(uvmesh=...) skips the UV unwrap and the face labelling (a re-bake of the viewer fit) and bakes
+    what a fresh unwrap would; an uvmesh of another mesh is refused."""
+    import toolkit.bake as bake
+    from test_viewbake import _blue, _floor_quad, _lit_maps, _sh
+    from toolkit._checks import ShapeError
+    from toolkit.asset import AssetConfig, bake_mesh
+
+    maps = _lit_maps((0.12, 0.06, 0.02))
+    cfg = AssetConfig(texture=64)
+    mesh = _floor_quad()
+    uvmesh, tex, _ = bake_mesh(mesh, _blue, cfg, views=maps, sh=_sh())
+
+    def refused(*a, **k):
+        raise AssertionError("re-bake ran the unwrap or the labelling again")
+
+    monkeypatch.setattr(bake, "unwrap_uv", refused)
+    monkeypatch.setattr(bake, "label_faces", refused)
+    uv2, tex2, stats2 = bake_mesh(mesh, _blue, cfg, views=maps, sh=_sh(), uvmesh=uvmesh)
+    assert np.array_equal(uv2.uvs, uvmesh.uvs) and np.array_equal(uv2.face_labels, uvmesh.face_labels)
+    for k in ("base_color", "orm", "normal"):
+        assert np.array_equal(getattr(tex2, k), getattr(tex, k)), k
+    assert stats2["unwrap_seconds"] == 0.0
+    small = Mesh(mesh.vertices[:3], mesh.faces[:1])
+    with pytest.raises(ShapeError, match="not an unwrap of this mesh"):
+        bake_mesh(small, _blue, cfg, views=maps, sh=_sh(), uvmesh=uvmesh)

@@ -22,7 +22,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ._checks import ConfigError, DarsError
+from ._checks import ConfigError, DarsError, ShapeError
 from .bake import PBRTextures, UVMesh
 from .io import atomic_write, write_png
 from .mesh import Mesh
@@ -436,7 +436,8 @@ def _with_fitted_light(texel_fn, views, sh, scale: float, tolerance: float, tint
 
 
 def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=None,
-              views=None, sh=None, light_correction=None) -> tuple[UVMesh, PBRTextures, dict]:
+              views=None, sh=None, light_correction=None, uvmesh: UVMesh | None = None
+              ) -> tuple[UVMesh, PBRTextures, dict]:
     """The bake half: UV-unwrap ``mesh``, label its faces and bake PBR textures from ``material_fn``; ``log``: an
     optional callable told when the unwrap (xatlas, which reports no progress) starts and ends.
 
@@ -448,6 +449,8 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
             occlusion and tint are fitted to it (:func:`_with_fitted_light`).
         light_correction: with that fit, a callable points -> float [N, 3] the fitted light is multiplied by
             (:func:`build_asset`'s ``viewer_fit``); None: none.
+        uvmesh: an earlier bake's unwrap of this ``mesh`` with the same ``material_fn`` (its atlas and face labels
+            are reused: a re-bake skips the unwrap and the labelling); None: unwrap and label here.
 
     Returns:
         (uvmesh, textures, statistics ``texture``, ``supersample``, ``uv_vertices``, timings, ``chart_coverage``,
@@ -460,13 +463,19 @@ def bake_mesh(mesh: Mesh, material_fn, cfg: AssetConfig = AssetConfig(), log=Non
     from .viewbake import view_projected
 
     t0 = time.perf_counter()
-    if log is not None:
-        log(f"[dars] UV atlas of {mesh.num_faces} faces (xatlas, which shows no progress) ...")
-    uvmesh = unwrap_uv(mesh, UnwrapConfig(texture_size=cfg.texture))
-    t1 = time.perf_counter()
-    if log is not None:
-        log(f"[dars] UV atlas done in {t1 - t0:.0f} s")
-    uvmesh = label_faces(uvmesh, material_fn, device=cfg.device)
+    if uvmesh is None:
+        if log is not None:
+            log(f"[dars] UV atlas of {mesh.num_faces} faces (xatlas, which shows no progress) ...")
+        uvmesh = unwrap_uv(mesh, UnwrapConfig(texture_size=cfg.texture))
+        t1 = time.perf_counter()
+        if log is not None:
+            log(f"[dars] UV atlas done in {t1 - t0:.0f} s")
+        uvmesh = label_faces(uvmesh, material_fn, device=cfg.device)
+    else:
+        if uvmesh.num_vertices == 0 or int(uvmesh.vmapping.max()) >= mesh.num_vertices:
+            raise ShapeError(f"bake_mesh: the uvmesh given ({uvmesh.num_vertices} vertices) is not an unwrap of this "
+                             f"mesh ({mesh.num_vertices} vertices)")
+        t1 = t0
     seen: dict = {}
     scale = 1.0
     fitted = False
@@ -543,7 +552,7 @@ def _viewer_fit(mesh, field, maps, cfg: AssetConfig, uvmesh, textures, bake_stat
             return uvmesh, textures, {**bake_stats, "viewer_fit": {"skipped": str(e)}}
         total = total * np.asarray(factor, np.float32)
         uvmesh, textures, bake_stats = bake_mesh(mesh, field.material_fn, cfg, log=log, views=maps, sh=field.sh,
-                                                 light_correction=VertexValues(mesh, total))
+                                                 light_correction=VertexValues(mesh, total), uvmesh=uvmesh)
     moved = np.abs(total - 1.0).max(1) > 0
     q = np.quantile(total[moved], [0.05, 0.5, 0.95], axis=0).mean(1) if moved.any() else np.ones(3)
     return uvmesh, textures, {**bake_stats, "viewer_fit": {"passes": cfg.viewer_fit,

@@ -47,7 +47,7 @@ from .cameras import generate_rays
 from .io import linear_to_srgb, srgb_to_linear
 from .sh import latlong_angles, latlong_directions, lookup_latlong
 
-__all__ = ["Backdrop", "background_visibility", "backdrop_from_views", "mesh_coverage"]
+__all__ = ["Backdrop", "background_visibility", "backdrop_from_views", "front_hits", "mesh_coverage", "raycasting_scene"]
 
 CONVENTION = ("lat-long, world frame (+z up): row 0 at +z, pixel centres at theta = pi (row + 0.5) / h and "
               "phi = atan2(x, y) = 2 pi (col + 0.5) / w; bilinear, wrapping in phi, clamped in theta; radiance linear")
@@ -152,12 +152,58 @@ def background_visibility(views, height: int, width: int) -> np.ndarray:
     return vis.reshape(height, width).float().numpy()
 
 
-def mesh_coverage(vertices: np.ndarray, faces: np.ndarray, cameras, passes: int = 4) -> torch.Tensor:
-    """bool [V, H, W]: the pixels of ``cameras`` (one pixel grid) on which a one-sided mesh is drawn — the ray meets
-    a triangle from its front (counter-clockwise) side, as in a viewer that culls back faces (the GLB's default).
-    A ray that meets a back face first goes on through it, up to ``passes`` times. Open3D's ray casting, CPU."""
+def raycasting_scene(vertices: np.ndarray, faces: np.ndarray):
+    """An Open3D ray-casting scene of a triangle mesh (float [V, 3], int [F, 3]), for :func:`front_hits`."""
     import open3d as o3d
 
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
+    return scene
+
+
+def front_hits(scene, origins: np.ndarray, directions: np.ndarray, extent: float,
+               passes: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """The first front-facing (counter-clockwise) triangle each ray meets, as a viewer that culls back faces (the
+    GLB's default) draws it: a ray that meets a back face first goes on through it, up to ``passes`` times.
+
+    Args:
+        scene: :func:`raycasting_scene` of the mesh.
+        origins, directions: float [N, 3] rays (any length of direction).
+        extent: the mesh's size (m); a ray restarts 1e-5 of it behind a back face.
+
+    Returns:
+        (face index int64 [N], -1 where no front face is met; barycentric (u, v) float32 [N, 2] of the hit on that
+        face, Open3D's convention: the point is (1 - u - v) a + u b + v c).
+    """
+    import open3d as o3d
+
+    o = np.asarray(origins, np.float32).copy()
+    d = np.asarray(directions, np.float32)
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    prim = np.full(o.shape[0], -1, np.int64)
+    bary = np.zeros((o.shape[0], 2), np.float32)
+    eps = 1e-5 * (float(extent) + 1e-6)
+    idx = np.arange(o.shape[0])
+    for _ in range(passes):
+        ans = scene.cast_rays(o3d.core.Tensor(np.concatenate([o[idx], d[idx]], 1)))
+        t = ans["t_hit"].numpy()
+        hit = np.isfinite(t)
+        front = hit & ((ans["primitive_normals"].numpy() * d[idx]).sum(1) < 0)
+        prim[idx[front]] = ans["primitive_ids"].numpy()[front].astype(np.int64)
+        bary[idx[front]] = ans["primitive_uvs"].numpy()[front]
+        on = hit & ~front                                      # a back face: look behind it
+        o[idx[on]] = o[idx[on]] + (t[on, None] + eps) * d[idx[on]]
+        idx = idx[on]
+        if idx.size == 0:
+            break
+    return prim, bary
+
+
+def mesh_coverage(vertices: np.ndarray, faces: np.ndarray, cameras, passes: int = 4) -> torch.Tensor:
+    """bool [V, H, W]: the pixels of ``cameras`` (one pixel grid) on which a one-sided mesh is drawn — the ray meets
+    a triangle from its front (counter-clockwise) side, as in a viewer that culls back faces (the GLB's default;
+    :func:`front_hits`). Open3D's ray casting, CPU."""
     v = np.asarray(vertices, np.float32)
     f = np.asarray(faces, np.uint32)
     cams = cameras.to("cpu")
@@ -165,28 +211,12 @@ def mesh_coverage(vertices: np.ndarray, faces: np.ndarray, cameras, passes: int 
     out = torch.zeros(len(cams), *hw, dtype=torch.bool)
     if f.size == 0:
         return out
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(f))
-    eps = 1e-5 * float(np.linalg.norm(v.max(0) - v.min(0)) + 1e-6)
+    scene = raycasting_scene(v, f)
+    extent = float(np.linalg.norm(v.max(0) - v.min(0)))
     for i in range(len(cams)):
         rays = generate_rays(cams, [i])
-        o = rays.origins.numpy().astype(np.float32)
-        d = rays.directions.numpy().astype(np.float32)
-        d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-        covered = np.zeros(o.shape[0], bool)
-        idx = np.arange(o.shape[0])
-        for _ in range(passes):
-            ans = scene.cast_rays(o3d.core.Tensor(np.concatenate([o[idx], d[idx]], 1)))
-            t = ans["t_hit"].numpy()
-            hit = np.isfinite(t)
-            front = hit & ((ans["primitive_normals"].numpy() * d[idx]).sum(1) < 0)
-            covered[idx[front]] = True
-            on = hit & ~front                                  # a back face: look behind it
-            o[idx[on]] = o[idx[on]] + (t[on, None] + eps) * d[idx[on]]
-            idx = idx[on]
-            if idx.size == 0:
-                break
-        out[i] = torch.from_numpy(covered.reshape(hw))
+        prim, _ = front_hits(scene, rays.origins.numpy(), rays.directions.numpy(), extent, passes)
+        out[i] = torch.from_numpy((prim >= 0).reshape(hw))
     return out
 
 

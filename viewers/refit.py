@@ -5,7 +5,8 @@ The bake fits each texel's occlusion and light tint at the views whose *field de
 depth part (a wall meshed a few centimetres off, an edge, a hole the backdrop fills) and wherever its texture filter
 averages texels the fit treated one by one. So :func:`viewer_light_correction` renders the GLB with the preview
 (:class:`viewers.preview.OffscreenPreview`) at the views the bake was fitted to, casts every pixel's ray against the
-mesh (what the viewer draws there), and fits one RGB factor per mesh vertex that brings the viewer's linear colour
+mesh (the first front face it meets: what a viewer that culls back faces draws there,
+:func:`toolkit.backdrop.front_hits`), and fits one RGB factor per mesh vertex that brings the viewer's linear colour
 C to the field's F there: c = Σ w C F / Σ w C² over the pixels around the vertex (barycentric weights; w as in
 :func:`~toolkit.viewbake.fit_light`). :func:`toolkit.asset.build_asset`, given :func:`viewer_correction` (``dars
 export-asset`` gives it), re-bakes with the light multiplied by c (``AssetConfig.viewer_fit``; README, "The GLB
@@ -41,9 +42,7 @@ def viewer_light_correction(glb, mesh, maps, saturated: float = 0.995, min_opaci
     Raises:
         DarsError: no headless OpenGL context (:func:`viewers.gl.create_headless_context`).
     """
-    import open3d as o3d
-    import torch
-
+    from toolkit.backdrop import front_hits, raycasting_scene
     from toolkit.cameras import generate_rays
     from toolkit.io import srgb_to_linear
     from toolkit.pinhole import PinholeCamera
@@ -56,8 +55,7 @@ def viewer_light_correction(glb, mesh, maps, saturated: float = 0.995, min_opaci
                          f"{sorted(maps.values)}")
     vertices = np.asarray(mesh.vertices, np.float32)
     faces = np.asarray(mesh.faces, np.int64)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(faces.astype(np.uint32)))
+    scene = raycasting_scene(vertices, faces)
     extent = float(np.linalg.norm(vertices.max(0) - vertices.min(0))) if len(vertices) else 1.0
     num = np.zeros((len(vertices), 3))
     den = np.zeros((len(vertices), 3))
@@ -68,11 +66,10 @@ def viewer_light_correction(glb, mesh, maps, saturated: float = 0.995, min_opaci
             srgb = np.asarray(shown.to_float(), np.float64)[..., :3]
             h, w = srgb.shape[:2]
             rays = generate_rays(cams, [i])
-            hit = scene.cast_rays(o3d.core.Tensor(
-                torch.cat([rays.origins, rays.directions], -1).reshape(-1, 6).numpy().astype(np.float32)))
-            prim = hit["primitive_ids"].numpy().astype(np.int64).reshape(h, w)
-            bary_uv = hit["primitive_uvs"].numpy().reshape(h, w, 2)
-            ok = (np.asarray(shown.mask) & (prim >= 0) & (prim < len(faces)) & (srgb.max(-1) < saturated)
+            prim, bary_uv = front_hits(scene, rays.origins.numpy(), rays.directions.numpy(), extent)
+            prim = prim.reshape(h, w)
+            bary_uv = bary_uv.reshape(h, w, 2)
+            ok = (np.asarray(shown.mask) & (prim >= 0) & (srgb.max(-1) < saturated)
                   & (maps.opacity[i].numpy() >= min_opacity))
             if not ok.any():
                 continue
