@@ -187,20 +187,21 @@ def test_mesh_coverage_is_what_a_one_sided_viewer_draws():
 def test_front_hits_name_the_face_a_one_sided_viewer_draws():
     """front_hits: through a back face to the front face behind it, with that face's index and barycentrics (the
     point they give is where the ray meets the far quad); -1 where no front face is met."""
-    from toolkit.backdrop import front_hits, raycasting_scene
+    from toolkit.backdrop import front_hits
+    from toolkit.bake import ray_scene
 
     vb, fb = _quad(2.0, flip=True)          # seen from below: a back face, first on the ray
     v2, f2 = _quad(3.0)                      # behind it, facing the camera
     v, f = np.concatenate([vb, v2]), np.concatenate([fb, f2 + 4])
     o = np.zeros((3, 3), np.float32)
     d = np.array([[0.03, 0.05, 1.0], [-0.04, 0.02, 2.0], [1.0, 0.0, 0.1]], np.float32)  # two into the quads, one off
-    prim, bary = front_hits(raycasting_scene(v, f), o, d, extent=1.0)
+    prim, bary = front_hits(ray_scene(v, f), o, d, extent=1.0)
     assert prim.dtype == np.int64 and list(prim >= 2) == [True, True, False] and prim[2] == -1
     tri = v[f[prim[:2]]]
     point = (1 - bary[:2, :1] - bary[:2, 1:]) * tri[:, 0] + bary[:2, :1] * tri[:, 1] + bary[:2, 1:] * tri[:, 2]
     expect = d[:2] / d[:2, 2:] * 3.0        # the ray at z = 3
     np.testing.assert_allclose(point, expect, atol=1e-5)
-    prim1, _ = front_hits(raycasting_scene(v, f), o, d, extent=1.0, passes=1)
+    prim1, _ = front_hits(ray_scene(v, f), o, d, extent=1.0, passes=1)
     assert (prim1 == -1).all()              # one pass stops at the back face
 
 

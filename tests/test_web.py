@@ -309,8 +309,8 @@ def test_page_filters_the_other_maps_of_a_glb_without_base_colour(serve, tmp_pat
         (tmp_path / f"b{blur:.0f}").mkdir()
         shots[blur], _ = _page_shot(glb, serve, tmp_path / f"b{blur:.0f}", 48, 36)
     with OffscreenPreview(glb) as view:
-        # The blur's unit is the normal map's side: the cube's atlas is 3 cells of 32 px across. A 1-texel
-        # placeholder texture (what the GLB lacks) must not set it.
+        # The blur's unit is the normal map's side: the cube's atlas is 3 cells of 32 px across. The 1-texel
+        # stand-in the renderer binds for a map the GLB lacks must not set it.
         assert view.renderer.texture_size == 3 * 32.0
     assert shots[0.0].std() > 0.02
     change = np.abs(shots[0.0] - shots[64.0]).mean()

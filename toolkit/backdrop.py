@@ -43,11 +43,12 @@ import numpy as np
 import torch
 
 from ._checks import SceneError, ShapeError
+from .bake import ray_scene
 from .cameras import generate_rays
 from .io import linear_to_srgb, srgb_to_linear
 from .sh import latlong_angles, latlong_directions, lookup_latlong
 
-__all__ = ["Backdrop", "background_visibility", "backdrop_from_views", "front_hits", "mesh_coverage", "raycasting_scene"]
+__all__ = ["Backdrop", "background_visibility", "backdrop_from_views", "front_hits", "mesh_coverage"]
 
 CONVENTION = ("lat-long, world frame (+z up): row 0 at +z, pixel centres at theta = pi (row + 0.5) / h and "
               "phi = atan2(x, y) = 2 pi (col + 0.5) / w; bilinear, wrapping in phi, clamped in theta; radiance linear")
@@ -152,23 +153,13 @@ def background_visibility(views, height: int, width: int) -> np.ndarray:
     return vis.reshape(height, width).float().numpy()
 
 
-def raycasting_scene(vertices: np.ndarray, faces: np.ndarray):
-    """An Open3D ray-casting scene of a triangle mesh (float [V, 3], int [F, 3]), for :func:`front_hits`."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
-                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
-    return scene
-
-
 def front_hits(scene, origins: np.ndarray, directions: np.ndarray, extent: float,
                passes: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """The first front-facing (counter-clockwise) triangle each ray meets, as a viewer that culls back faces (the
     GLB's default) draws it: a ray that meets a back face first goes on through it, up to ``passes`` times.
 
     Args:
-        scene: :func:`raycasting_scene` of the mesh.
+        scene: :func:`toolkit.bake.ray_scene` of the mesh.
         origins, directions: float [N, 3] rays (any length of direction).
         extent: the mesh's size (m); a ray restarts 1e-5 of it behind a back face.
 
@@ -211,7 +202,7 @@ def mesh_coverage(vertices: np.ndarray, faces: np.ndarray, cameras, passes: int 
     out = torch.zeros(len(cams), *hw, dtype=torch.bool)
     if f.size == 0:
         return out
-    scene = raycasting_scene(v, f)
+    scene = ray_scene(v, f)
     extent = float(np.linalg.norm(v.max(0) - v.min(0)))
     for i in range(len(cams)):
         rays = generate_rays(cams, [i])

@@ -47,6 +47,7 @@ __all__ = [
     "DEFAULT_MATERIAL",
     "LIGHT_TINT_SCALE",
     "unwrap_uv",
+    "ray_scene",
     "compute_tangents",
     "fold_normals",
     "rasterize_triangles",
@@ -553,7 +554,7 @@ def bake_pbr_textures(uvmesh: UVMesh, material_fn: MaterialFn, cfg: BakeConfig =
     occl = np.ones(n_tex, np.float32)
     tint: np.ndarray | None = None
     missing: set[str] = set()
-    ao_scene = _ray_scene(uvmesh) if cfg.ao_samples > 0 else None
+    ao_scene = ray_scene(uvmesh.vertices, uvmesh.faces) if cfg.ao_samples > 0 else None
     ao_dist = cfg.ao_distance or 0.1 * uvmesh.to_mesh().diagonal
     bar = _progress(n_tex, "baking textures", cfg.progress, unit="texel")
     try:
@@ -657,11 +658,14 @@ def _ambient_occlusion(scene, pos: np.ndarray, n: np.ndarray, samples: int, dist
     return 1.0 - (hit < distance).mean(1).astype(np.float32)
 
 
-def _ray_scene(uvmesh: UVMesh):
+def ray_scene(vertices: np.ndarray, faces: np.ndarray):
+    """An Open3D ray-casting scene of a triangle mesh (float [V, 3], int [F, 3]): the bake's ambient occlusion, the
+    backdrop's coverage and the viewer fit's pixels (:func:`toolkit.backdrop.front_hits`) cast rays against it."""
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(uvmesh.vertices.astype(np.float32)), o3d.core.Tensor(uvmesh.faces.astype(np.uint32)))
+    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
     return scene
 
 

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from ._checks import ConfigError, ShapeError
-from .bake import DEFAULT_MATERIAL, fold_normals
+from .bake import DEFAULT_MATERIAL, fold_normals, ray_scene
 from .cameras import Cameras, project_points
 
 __all__ = ["ViewMaps", "sightings", "project_views", "view_projected", "fit_light", "face_texture_blur",
@@ -298,16 +298,12 @@ class VertexValues:
     """
 
     def __init__(self, mesh, values: np.ndarray) -> None:
-        import open3d as o3d
-
         self.faces = np.asarray(mesh.faces, np.int64)
         self.values = np.asarray(values, np.float32)
         if self.values.shape[0] != len(np.asarray(mesh.vertices)):
             raise ValueError(f"VertexValues: {self.values.shape[0]} values for {len(np.asarray(mesh.vertices))} "
                              "vertices")
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
-                                 o3d.core.Tensor(self.faces.astype(np.uint32)))
+        self.scene = ray_scene(mesh.vertices, self.faces)
 
     def __call__(self, points) -> torch.Tensor:
         import open3d as o3d

@@ -42,7 +42,8 @@ def viewer_light_correction(glb, mesh, maps, saturated: float = 0.995, min_opaci
     Raises:
         DarsError: no headless OpenGL context (:func:`viewers.gl.create_headless_context`).
     """
-    from toolkit.backdrop import front_hits, raycasting_scene
+    from toolkit.backdrop import front_hits
+    from toolkit.bake import ray_scene
     from toolkit.cameras import generate_rays
     from toolkit.io import srgb_to_linear
     from toolkit.pinhole import PinholeCamera
@@ -55,7 +56,7 @@ def viewer_light_correction(glb, mesh, maps, saturated: float = 0.995, min_opaci
                          f"{sorted(maps.values)}")
     vertices = np.asarray(mesh.vertices, np.float32)
     faces = np.asarray(mesh.faces, np.int64)
-    scene = raycasting_scene(vertices, faces)
+    scene = ray_scene(vertices, faces)
     extent = float(np.linalg.norm(vertices.max(0) - vertices.min(0))) if len(vertices) else 1.0
     num = np.zeros((len(vertices), 3))
     den = np.zeros((len(vertices), 3))
