@@ -146,6 +146,20 @@ class RoomLayout:
     band: list = field(default_factory=list)
     """Per face: which fit placed it, "colour" or "high-pass" (:attr:`LayoutConfig.highpass`); empty: unknown."""
 
+    def planes(self, confident_only: bool = True) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        """The box's faces as world planes ``n · x = c``: (normals float [P, 3], offsets float [P], names), in the
+        order of :data:`FACE_NAMES`; only the faces that count unless ``confident_only`` is False."""
+        normals, offsets, names = [], [], []
+        for j, name in enumerate(FACE_NAMES):
+            if confident_only and not self.confident[j]:
+                continue
+            k = j // 2
+            q = self.lo[k] if j % 2 == 0 else self.hi[k]
+            normals.append(self.axes[k])
+            offsets.append(q + float(self.axes[k] @ self.origin))
+            names.append(name)
+        return np.asarray(normals, np.float64).reshape(-1, 3), np.asarray(offsets, np.float64), names
+
     def to_json(self) -> dict:
         faces = {n: {"confident": bool(c), "contrast": round(float(k), 4), "coverage": round(float(v), 4)}
                  for n, c, k, v in zip(FACE_NAMES, self.confident, self.contrast, self.coverage)}

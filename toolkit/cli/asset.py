@@ -20,6 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from .._checks import DarsError
+from ..defaults import SNAP_LAYOUT_DEFAULT
 from ._common import COUNT, POSITIVE, log, number, print_json
 
 MESH_FILES = ("mesh.ply", "mesh_stats.json")
@@ -50,6 +51,11 @@ def add_mesh_options(q: argparse.ArgumentParser) -> None:
                    help="keep a component whatever its size when at least this fraction of the training rays' "
                         "half-transmittance points lies on it (1 = size alone decides)")
     q.add_argument("--keep-unseen", action="store_true", help="keep faces that no training camera sees")
+    q.add_argument("--snap-layout", type=number(float, min=0, max=0.5), default=SNAP_LAYOUT_DEFAULT,
+                   help="tsdf, for a run with a room box: move the mesh's vertices the field labels wall or floor "
+                        "that lie within this fraction of the median depth of a confident face of the box onto "
+                        "its plane "
+                        f"(default {SNAP_LAYOUT_DEFAULT}; 0 = off)")
     q.add_argument("--depth-samples", type=POSITIVE, default=128, help="samples per ray for --method tsdf depth maps")
     q.add_argument("--depth-min-opacity", type=number(float, above=0, max=0.5), default=0.5,
                    help="tsdf: below 0.5, a ray that never reaches half opacity but gathers at least this much in the "
@@ -142,9 +148,9 @@ def asset_config(args: argparse.Namespace):
     from ..asset import AssetConfig
 
     names = ("method", "resolution", "level", "level_quantile", "faces", "simplify", "min_component", "min_seen",
-             "keep_unseen", "depth_samples", "depth_min_opacity", "depth_rays", "texture", "supersample", "ao_samples",
-             "bake_from", "view_rays", "normals_from", "view_tolerance", "light_occlusion", "light_tint", "light_fit",
-             "viewer_fit", "backdrop", "device")
+             "keep_unseen", "snap_layout", "depth_samples", "depth_min_opacity", "depth_rays", "texture", "supersample",
+             "ao_samples", "bake_from", "view_rays", "normals_from", "view_tolerance", "light_occlusion", "light_tint",
+             "light_fit", "viewer_fit", "backdrop", "device")
     return AssetConfig(**{k: getattr(args, k) for k in names if hasattr(args, k)})
 
 

@@ -39,6 +39,7 @@ from .clean import face_components, remove_floaters, remove_unseen_faces
 from .distance import MeshDistance, mesh_distance, sample_surface
 from .extract import (MeshConfig, extract_mesh, grid_spec, level_from_rays, opacity_level, query_vertex_attributes,
                       seen_surface_points, surface_region)
+from .planes import PlaneSnapConfig, snap_to_planes
 from .ply import load_mesh, save_mesh
 from .simplify import SimplifyConfig, SimplifyReport, simplify_mesh
 from .tsdf import DepthRenderConfig, TsdfConfig, fuse_tsdf, opengl_c2w_to_opencv_w2c, render_depth
@@ -65,6 +66,8 @@ __all__ = [
     "remove_floaters",
     "remove_unseen_faces",
     "simplify_mesh",
+    "PlaneSnapConfig",
+    "snap_to_planes",
     "mesh_distance",
     "sample_surface",
     "face_components",

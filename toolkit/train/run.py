@@ -197,6 +197,9 @@ class FieldCallables(NamedTuple):
             (:mod:`toolkit.viewbake`); None when the field has no renderer (the bake queries points).
         background: float [h, w, 3] the run's learned background as a lat-long linear radiance map
             (:meth:`toolkit.pipeline.Background.radiance_map`; the GLB's backdrop, :mod:`toolkit.backdrop`), or None.
+        room_layout: the room's box the run trained with (:class:`toolkit.layout.RoomLayout`, the ``room_layout`` of
+            its ``config.json``; the mesh's walls and floor are flattened onto its faces, :mod:`toolkit.mesh.planes`),
+            or None.
     """
 
     density_fn: Callable
@@ -207,6 +210,7 @@ class FieldCallables(NamedTuple):
     space: Any = None
     views: Callable | None = None
     background: torch.Tensor | None = None
+    room_layout: Any = None
 
 
 def field_callables(run: Run, chunk: int = 65536):
@@ -263,11 +267,15 @@ def load_field_callables(run_dir: str | Path, checkpoint: str | Path | None = No
 
 def run_field_callables(run: Run) -> FieldCallables:
     """:class:`FieldCallables` of a loaded run, with its renderer for the view-projected bake."""
+    from ..layout import RoomLayout
+
     d, m = field_callables(run)
+    layout = run.meta.get("room_layout")
     return FieldCallables(d, m, run.train_scene.aabb.clone(), run.l_env.detach().cpu().clone(),
                           run.train_scene.cameras, run.field.space.to("cpu") if run.cfg.field.contraction else None,
                           lambda cameras, light_gain=False: render_view_maps(run, cameras, light_gain=light_gain),
-                          run.background.radiance_map().detach().float().cpu().clone())
+                          run.background.radiance_map().detach().float().cpu().clone(),
+                          RoomLayout.from_json(layout) if layout else None)
 
 
 VIEW_MAP_KEYS = ("albedo", "roughness", "metallic", "normal", "rgb")
