@@ -26,14 +26,10 @@ def _bumpy_floor_and_post(seed: int = 0):
     """A 2 m floor at z = 0 with ±5 cm bumps, and beside it a vertical 1 m post face (x = 2.5) rising from z = 0."""
     rng = np.random.default_rng(seed)
     v1, f1 = _grid(21, 2.0, rng.uniform(-0.05, 0.05, (21, 21)))
-    u = np.linspace(0, 1.0, 11)
-    y, z = np.meshgrid(u, u, indexing="ij")
-    v2 = np.stack([np.full(y.size, 2.5), y.ravel(), z.ravel()], -1)
-    i = np.arange(121).reshape(11, 11)
-    a, b, c, d = i[:-1, :-1].ravel(), i[1:, :-1].ravel(), i[1:, 1:].ravel(), i[:-1, 1:].ravel()
-    f2 = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]) + len(v1)
+    v2, f2 = _grid(11, 1.0, 0.0)
+    v2 = v2[:, [2, 0, 1]] + [2.5, 0, 0]  # the grid stood up: x = 2.5, y and z over [0, 1]
     v = np.concatenate([v1, v2]).astype(np.float32)
-    f = np.concatenate([f1, f2]).astype(np.int64)
+    f = np.concatenate([f1, f2 + len(v1)]).astype(np.int64)
     return Mesh(v, f, compute_vertex_normals(v, f)), len(v1)
 
 

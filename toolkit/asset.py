@@ -35,12 +35,12 @@ __all__ = ["AssetConfig", "Asset", "build_asset", "build_mesh", "bake_mesh", "vi
 
 
 SEEN_RADIUS_VOXELS = 3.0
+"""A training ray's half-transmittance point counts for the mesh component whose nearest vertex lies within this
+many marching-cubes voxels (the iso-surface sits at or before the crossing, a sample spacing or two away)."""
 SNAP_CLASSES = (SEMANTIC_CLASSES.index("wall"), SEMANTIC_CLASSES.index("floor"))
 """The classes whose vertices :attr:`AssetConfig.snap_layout` may move onto the room's box (the field's own labels):
 on the real fox capture the field labels the fox and its stand 'painting', and moving every vertex near the wall
 behind it cost its GLB preview 1.59 dB (README, "Walls and floor flattened onto the room's box")."""
-"""A training ray's half-transmittance point counts for the mesh component whose nearest vertex lies within this
-many marching-cubes voxels (the iso-surface sits at or before the crossing, a sample spacing or two away)."""
 
 
 @dataclass(frozen=True)
@@ -282,6 +282,7 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
     stats: dict = {"method": method, "method_option": cfg.method, "resolution": cfg.resolution}
     t0 = time.perf_counter()
     box = np.asarray(aabb.detach().cpu().numpy() if hasattr(aabb, "detach") else aabb, dtype=np.float64)
+    median_depth = None  # of the tsdf depth maps: the scale of AssetConfig.snap_layout
     seen = seen_sigma = None  # where the training rays reach half transmittance (what the photos see) and σ there
     if space is not None and space.contraction and cameras is not None:
         # unbounded field: mesh where the photos' rays find surfaces (walls, floor, objects), not the sky
@@ -310,7 +311,7 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
                                                                        min_opacity=cfg.depth_min_opacity,
                                                                        device=cfg.device))
         stats["depth_maps"]["pixels_with_depth"] = round(float((depths > 0).mean()), 4)
-        median_depth = float(np.median(depths[depths > 0])) if (depths > 0).any() else 0.0
+        median_depth = float(np.median(depths[depths > 0])) if (depths > 0).any() else None
         depth_max = float(np.linalg.norm(box[1] - box[0])) * 4
         mesh = fuse_tsdf(depths, cams, cfg=TsdfConfig(voxel_size=voxel, depth_max=depth_max))
     stats["extract_seconds"] = round(time.perf_counter() - t0, 3)
@@ -329,8 +330,7 @@ def build_mesh(field: FieldCallables, cfg: AssetConfig = AssetConfig()) -> tuple
         mesh = remove_unseen_faces(mesh, cameras)
     stats["faces_cleaned"] = mesh.num_faces
     if cfg.snap_layout > 0:
-        mesh, stats["snap_layout"] = _snap_to_layout(mesh, field, cfg.snap_layout,
-                                                     median_depth if method == "tsdf" else None, cfg.device)
+        mesh, stats["snap_layout"] = _snap_to_layout(mesh, field, cfg.snap_layout, median_depth, cfg.device)
     if cfg.faces and mesh.num_faces > cfg.faces:
         mesh, report = simplify_mesh(mesh, cfg.faces, method=cfg.simplify)
         stats["simplify"] = report.to_dict()
@@ -350,7 +350,7 @@ def _snap_to_layout(mesh: Mesh, field, fraction: float, median_depth: float | No
     layout = getattr(field, "room_layout", None)
     if layout is None:
         return mesh, {"skipped": "the run has no room box (an object, or trained with --layout-depth 0)"}
-    if median_depth is None or median_depth <= 0:
+    if median_depth is None:
         return mesh, {"skipped": "needs the tsdf depth maps (the tolerance is a fraction of their median depth)"}
     normals, offsets, names = layout.planes()
     if not len(names):

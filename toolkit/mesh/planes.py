@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._checks import ConfigError, check_shape
-from .types import Mesh, compute_vertex_normals
+from .types import Mesh, _face_areas, compute_vertex_normals
 
 __all__ = ["PlaneSnapConfig", "snap_to_planes"]
 
@@ -114,8 +114,7 @@ def snap_to_planes(mesh: Mesh, normals: np.ndarray, offsets: np.ndarray, cfg: Pl
 
 def _vertex_areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     """float [V] a third of the area of the faces round each vertex."""
-    a = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    return np.bincount(f.ravel(), np.repeat(a / 3, 3), minlength=len(v))
+    return np.bincount(f.ravel(), np.repeat(_face_areas(v, f) / 3, 3), minlength=len(v))
 
 
 def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
