@@ -23,7 +23,7 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -60,17 +60,44 @@ def load_labelled(dirs: list[Path], splits=("train", "test"), progress: bool = T
     return torch.stack(imgs), torch.stack(labs), torch.stack(mets), src
 
 
-def score(net, scene_path: Path, split: str = "test") -> dict:
-    """mIoU (per class) and metal-mask IoU of ``net`` on every frame of one split."""
+def scene_prior_of(net, scene_path: Path, split: str = "train"):
+    """(scene prior, training prior) as ``dars priors segment`` estimates them on the photos of ``split``, or None
+    when the network records no training prior."""
+    import torch
+
+    from toolkit.scene import load_scene
+    from toolkit.segment import (SCENE_PRIOR_FLOOR, SegmentConfig, estimate_scene_prior, segment_images,
+                                 segmenter_train_prior)
+
+    pt = segmenter_train_prior(net)
+    if pt is None:
+        return None
+    sc = load_scene(scene_path, split, upright="off")
+    samples = []
+    for i in range(len(sc)):
+        pr = segment_images(sc.load_image(i)[None], SegmentConfig(backend="builtin"), model=net).probabilities[0]
+        step = max(1, int((pr.shape[1] * pr.shape[2] / 4096) ** 0.5))
+        samples.append(pr[:, ::step, ::step].reshape(pr.shape[0], -1).T)
+    return estimate_scene_prior(torch.cat(samples), pt, SCENE_PRIOR_FLOOR), pt
+
+
+def score(net, scene_path: Path, split: str = "test", scene_prior: bool = True) -> dict:
+    """mIoU (per class) and metal-mask IoU of ``net`` on every frame of one split; with ``scene_prior`` the labels
+    are relabelled by the scene's class prior estimated on its training photos, as ``dars priors segment`` does
+    (``miou_raw`` is the network's own argmax)."""
     import torch
 
     from toolkit.scene import SEMANTIC_CLASSES, load_scene
-    from toolkit.segment import SegmentConfig, mean_iou, metal_iou, segment_images
+    from toolkit.segment import SegmentConfig, apply_scene_prior, mean_iou, metal_iou, segment_images
 
     sc = load_scene(scene_path, split, upright="off")
-    preds, gts, mp, mg = [], [], [], []
+    prior = scene_prior_of(net, scene_path) if scene_prior else None
+    preds, raw, gts, mp, mg = [], [], [], [], []
     for i in range(len(sc)):
         seg = segment_images(sc.load_image(i)[None], SegmentConfig(backend="builtin"), model=net)
+        raw.append(seg.labels[0].flatten())
+        if prior is not None:
+            seg = replace(seg, labels=apply_scene_prior(seg.probabilities, *prior).argmax(1))
         preds.append(seg.labels[0].flatten())
         gts.append(sc.load_extra(i, "semantic").flatten())
         if seg.metal is not None and "metal" in sc.frames[i].extras:
@@ -78,6 +105,8 @@ def score(net, scene_path: Path, split: str = "test") -> dict:
             mg.append(sc.load_extra(i, "metal").bool().flatten())
     miou, per = mean_iou(torch.cat(preds), torch.cat(gts))
     out = {"scene": str(scene_path), "split": split, "views": len(sc), "miou": miou,
+           "miou_raw": mean_iou(torch.cat(raw), torch.cat(gts))[0],
+           "scene_prior": None if prior is None else [round(float(v), 5) for v in prior[0]],
            "per_class": {c: (None if v != v else round(v, 4)) for c, v in zip(SEMANTIC_CLASSES, per)}}
     if mg:
         out["metal_iou"] = metal_iou(torch.cat(mp), torch.cat(mg), torch.cat(gts))
@@ -92,6 +121,9 @@ def _mean_worst(rs: list[dict]) -> dict | None:
     if not v:
         return None
     out = {"mean": sum(v) / len(v), "worst": min(v), "scenes": len(v)}
+    raw = [r["miou_raw"] for r in rs if r.get("miou_raw") is not None]
+    if len(raw) == len(v):
+        out.update(raw_mean=sum(raw) / len(raw), raw_worst=min(raw))
     m = [r["metal_iou"] for r in rs if r.get("metal_iou") is not None]
     if m:
         out.update(metal_iou_mean=sum(m) / len(m), metal_iou_worst=min(m))
@@ -101,16 +133,19 @@ def _mean_worst(rs: list[dict]) -> dict | None:
 def _print_scores(rows: list[tuple[str, dict]]) -> None:
     from toolkit.scene import SEMANTIC_CLASSES
 
-    print(f"\n{'scene (test split, never trained on)':<40} {'mIoU':>6} {'metal IoU':>10}  "
+    print(f"\n{'scene (test split, never trained on)':<40} {'mIoU':>6} {'raw':>6} {'metal IoU':>10}  "
           + " ".join(f"{c[:7]:>7}" for c in SEMANTIC_CLASSES))
     for name, r in rows:
         m = r.get("metal_iou")
         per = " ".join("      -" if r["per_class"].get(c) is None else f"{r['per_class'][c]:7.3f}" for c in SEMANTIC_CLASSES)
-        print(f"{name:<40} {r['miou']:6.3f} {('-' if m is None else f'{m:.3f}'):>10}  {per}")
+        print(f"{name:<40} {r['miou']:6.3f} {r.get('miou_raw', float('nan')):6.3f} "
+              f"{('-' if m is None else f'{m:.3f}'):>10}  {per}")
         if r.get("metal_pixels_gt") == 0 and r.get("metal_pixels_pred"):
             # IoU 0 here is only false positives: say so rather than let it read as metal that was missed
             print(f"{'':<40} (no true metal pixel in these views: metal IoU 0 counts the {r['metal_pixels_pred']} "
                   "pixels predicted metal)")
+    print("mIoU: labels relabelled by the scene's class prior estimated on its training photos, as `dars priors "
+          "segment` does (toolkit.segment.estimate_scene_prior); raw: the network's own argmax")
 
 
 def _score_only(net, validation: list[Path], sample: Path) -> int:
@@ -221,7 +256,8 @@ def main(argv=None) -> int:
             "ground_truth_use": "labels and metal masks of the prior galleries train it; evaluation scenes are "
                                 "other seeds and the bundled sample",
         }
-        save_segmenter(args.save, net, {"card": args.save.with_suffix(".json").name, "summary": summary})
+        save_segmenter(args.save, net, {"card": args.save.with_suffix(".json").name, "summary": summary,
+                                        "class_pixels": res.class_pixels, "class_balance": cfg.class_balance})
         tmp = args.save.with_suffix(".json.tmp")
         tmp.write_text(json.dumps(card, indent=1) + "\n")
         tmp.replace(args.save.with_suffix(".json"))

@@ -275,6 +275,70 @@ def test_onnx_contract_errors(tmp_path):
 
 # ------------------------------------------------------------------ the bundled sample
 @pytest.mark.slow
+# ------------------------------------------------------------------ the scene's class prior
+def test_train_class_prior_is_the_balanced_frequency():
+    from toolkit.segment import train_class_prior
+
+    p = train_class_prior([400, 100, 0, 0, 0, 0, 100])
+    assert torch.allclose(p, torch.tensor([20, 10, 0, 0, 0, 0, 10], dtype=torch.float64) / 40)
+    assert torch.allclose(train_class_prior([3, 1, 0, 0, 0, 0, 0], class_balance=False)[:2],
+                          torch.tensor([0.75, 0.25], dtype=torch.float64))
+    with pytest.raises(SegmentationError, match="7 non-negative counts"):
+        train_class_prior([1, 2, 3])
+
+
+def _calibrated(labels: torch.Tensor, confidence: torch.Tensor, prior: torch.Tensor, g) -> torch.Tensor:
+    """Probabilities of a network trained under ``prior``: the true class at ``confidence``, the rest spread by it."""
+    n = labels.numel()
+    rest = prior[None].expand(n, -1).clone()
+    rest[torch.arange(n), labels] = 0
+    rest = rest / rest.sum(1, keepdim=True) * (1 - confidence)[:, None]
+    rest[torch.arange(n), labels] = confidence
+    return rest
+
+
+def test_scene_prior_drops_a_class_the_scene_lacks_and_keeps_a_small_real_one():
+    """A network trained under a flat prior answers 'display' on 2 % of the pixels at low confidence in a room with no
+    display case, and 'frame' on 0.3 % (true frames) with high confidence: EM removes the first, keeps the second."""
+    from toolkit.segment import apply_scene_prior, estimate_scene_prior
+
+    g = torch.Generator().manual_seed(0)
+    pt = torch.full((NUM_CLASSES,), 1.0 / NUM_CLASSES, dtype=torch.float64)
+    n = 20000
+    truth = torch.full((n,), 4)  # wall
+    truth[:6000] = 5  # floor
+    truth[6000:8000] = 0  # painting
+    truth[8000:8060] = 1  # a real frame, 0.3 %
+    lab = truth.clone()
+    fake = torch.arange(8100, 8500)  # 2 % of wall pixels the network calls display at 0.4
+    lab[fake] = 2
+    conf = torch.full((n,), 0.9, dtype=torch.float64)
+    conf[8000:8060] = 0.995  # sure enough to outweigh a prior 200x smaller than the wall's
+    conf[fake] = 0.4
+    P = _calibrated(lab, conf, pt, g)
+    P[fake, 4] = 0.35  # their second guess is the wall
+    P[fake] = P[fake] / P[fake].sum(1, keepdim=True)
+    assert (P.argmax(1) == 2).sum() == 400
+    pi = estimate_scene_prior(P, pt, floor=0.03)
+    assert torch.isclose(pi.sum(), torch.tensor(1.0, dtype=torch.float64))
+    assert pi[2] < 0.04 * pt[2] and pi[1] > 0.002, pi
+    relab = apply_scene_prior(P.T.reshape(1, NUM_CLASSES, 1, n), pi, pt)[0].argmax(0).flatten()
+    assert (relab == 2).sum() == 0 and (relab[fake] == 4).all()
+    assert (relab[8000:8060] == 1).all() and (relab[:6000] == 5).all()
+    assert torch.allclose(estimate_scene_prior(P[:0], pt), pt)  # no pixel: the training prior
+    with pytest.raises(ConfigError, match="floor"):
+        estimate_scene_prior(P, pt, floor=2.0)
+
+
+def test_shipped_segmenter_records_its_training_prior():
+    from toolkit.segment import segmenter_train_prior
+
+    pt = segmenter_train_prior(load_segmenter())
+    assert pt is not None and pt.shape == (NUM_CLASSES,) and torch.isclose(pt.sum(), torch.tensor(1.0, dtype=pt.dtype))
+    assert pt[4] == pt.max()  # walls: the most frequent class
+    assert segmenter_train_prior(Segmenter(TINY)) is None
+
+
 def test_builtin_on_sample(sample_scene_path):
     """Train on every 4th train view of the sample (reduced steps), evaluate on the test split."""
     from toolkit.scene import load_scene
@@ -311,6 +375,8 @@ def test_cli_segment_provided_and_builtin(tmp_path, capsys):
         assert (seg_dir / f).is_file(), f
     info = json.loads((seg_dir / "segment.json").read_text())
     assert info["backend"] == "shipped" and info["model"].startswith("shipped") and info["metal_mask"] == "predicted"
+    sp = info["scene_prior"]  # relabelled by the scene's own class prior, estimated on its photos
+    assert sp["applied"] and len(sp["scene_prior"]) == 7 and abs(sum(sp["scene_prior"]) - 1) < 1e-3 and sp["pixels"] > 0
     assert 0.0 <= info["miou_heldout"] <= 1.0 and info["heldout_views"] == 6  # nothing trained on: all 6 scored
     man = json.loads((seg_dir / "dars_manifest.json").read_text())
     assert man["dars"] == "priors segment" and "segment.json" in man["files"]
@@ -318,7 +384,11 @@ def test_cli_segment_provided_and_builtin(tmp_path, capsys):
     rc, out, err = _run(["priors", "segment", str(scene), "--backend", "provided", "--out", str(tmp_path / "p")], capsys)
     assert rc == 0, err
     info = json.loads((tmp_path / "p" / "segment.json").read_text())
-    assert info["backend"] == "provided" and info["miou_heldout"] == 1.0
+    assert info["backend"] == "provided" and info["miou_heldout"] == 1.0 and not info["scene_prior"]["applied"]
+    rc, out, err = _run(["priors", "segment", str(scene), "--scene-prior", "off", "--out", str(tmp_path / "raw")], capsys)
+    assert rc == 0, err
+    info = json.loads((tmp_path / "raw" / "segment.json").read_text())
+    assert info["scene_prior"] == {"applied": False, "reason": "turned off (--scene-prior off)"}
 
     out_dir = tmp_path / "seg_builtin"
     rc, out, err = _run(["priors", "segment", str(scene), "--backend", "builtin", "--train-every", "2", "--steps", "20",

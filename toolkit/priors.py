@@ -21,6 +21,7 @@ Reading: :func:`read_priors` gathers what the trainer uses (labels, metal masks,
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 from dataclasses import asdict, dataclass
@@ -208,7 +209,8 @@ def priors_colour(scene, out_dir=None, cfg=None, force: bool = False) -> dict:
 # ============================================================================ segment (stage 3)
 def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | None = None,
                    train_every: int = 4, eval_scene=None, train_cfg=None,
-                   export_onnx: Callable[..., Any] | None = None, force: bool = False) -> dict:
+                   export_onnx: Callable[..., Any] | None = None, force: bool = False,
+                   scene_prior: bool = True) -> dict:
     """Label every frame of ``scene`` and write ``<key>.png`` (uint8 ids), ``<key>_metal.png`` (the predicted metal
     mask, 0/255, networks with a metal channel), ``<key>_preview.png`` and ``segment.json`` (mIoU and metal IoU where
     ground truth exists, on frames the network was not trained on); for ``builtin`` also ``segmenter.pt`` and
@@ -230,12 +232,17 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
             ``max_abs_err``, ``inputs_checked`` and ``file_size`` (``dars priors segment`` passes
             :func:`export.onnx.export_segmenter_onnx`; the toolkit itself never imports ``export``). None: no ONNX.
         force: write into a folder holding other files (beside them; never over them).
+        scene_prior: relabel with the scene's own class prior (:func:`toolkit.segment.estimate_scene_prior`: EM over
+            every photo of ``scene``, then every photo's and ``eval_scene``'s probabilities re-weighted by it), for a
+            network that records the class prior it was trained under (the shipped one and ``builtin``
+            fine-tunes); ``segment.json``'s ``scene_prior`` says what was done.
 
     Raises:
         DarsError / SegmentationError: unwritable folder, user files in the way, missing labels or model.
     """
-    from .segment import (DEFAULT_SEGMENTER, SegmentConfig, SegmentationError, TrainSegmenterConfig, load_segmenter,
-                          mean_iou, metal_iou, save_segmenter, segment_images, train_segmenter)
+    from .segment import (DEFAULT_SEGMENTER, SCENE_PRIOR_FLOOR, SegmentConfig, SegmentationError, TrainSegmenterConfig,
+                          apply_scene_prior, estimate_scene_prior, load_segmenter, mean_iou, metal_iou, save_segmenter,
+                          segment_images, segmenter_train_prior, train_segmenter)
     from .visualise import colourise_labels, tile
 
     if backend not in ("shipped", "builtin", "provided", "onnx"):
@@ -278,7 +285,10 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
                     parameters=net.num_parameters(), train_config=asdict(cfg),
                     ground_truth_inputs=f"labels{' and metal masks' if metal is not None else ''} of the "
                                         f"{len(train_idx)} training views (fine-tuning)")
-        save_segmenter(out.file("segmenter.pt"), net, {"scene": str(scene.source), "fine_tuned_from": info["model"]})
+        net.meta = {**getattr(net, "meta", {}), "class_pixels": res.class_pixels, "class_balance": cfg.class_balance}
+        save_segmenter(out.file("segmenter.pt"), net, {"scene": str(scene.source), "fine_tuned_from": info["model"],
+                                                       "class_pixels": res.class_pixels,
+                                                       "class_balance": cfg.class_balance})
         if export_onnx is not None:
             h, w = scene.image_size
             rep = export_onnx(net, out.file("segmenter.onnx"), image_size=(h, w))
@@ -293,6 +303,31 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
     def _run(img):
         return segment_images(img[None], scfg, model=net if net is not None else model)
 
+    prior_t = segmenter_train_prior(net) if net is not None else None
+    prior_s = None
+    if backend == "provided" or not scene_prior:
+        info["scene_prior"] = {"applied": False, "reason": "provided labels" if backend == "provided" else
+                               "turned off (--scene-prior off)"}
+    elif prior_t is None:
+        info["scene_prior"] = {"applied": False, "reason": "the network records no training class prior (an ONNX "
+                               "model, or weights saved without class_pixels)"}
+    else:  # pass 1: the scene's class prior from a subsample of every photo's probabilities
+        samples = []
+        for i in _progress(range(len(scene)), "segment (scene prior)", len(scene)):
+            pr = _run(scene.load_image(i)).probabilities[0]
+            step = max(1, int(math.sqrt(pr.shape[1] * pr.shape[2] / 4096)))
+            samples.append(pr[:, ::step, ::step].reshape(pr.shape[0], -1).T)
+        prior_s = estimate_scene_prior(torch.cat(samples), prior_t, SCENE_PRIOR_FLOOR)
+        info["scene_prior"] = {"applied": True, "floor": SCENE_PRIOR_FLOOR,
+                               "train_prior": [round(float(v), 5) for v in prior_t],
+                               "scene_prior": [round(float(v), 5) for v in prior_s],
+                               "pixels": int(sum(x.shape[0] for x in samples))}
+
+    def _labels(seg):
+        if prior_s is None:
+            return seg.labels[0]
+        return apply_scene_prior(seg.probabilities, prior_s, prior_t)[0].argmax(0)
+
     preds, gts, mpred, mgt = [], [], [], []
     sheet_idx = set(np.linspace(0, len(scene) - 1, min(8, len(scene))).round().astype(int).tolist())
     sheet_rows = []
@@ -306,7 +341,7 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
             seg = segment_images(img[None], scfg, labels=gt[None])
         else:
             seg = _run(img)
-        lab = seg.labels[0]
+        lab = _labels(seg)
         write_png(out.file(f"{f.key}.png"), lab.numpy().astype(np.uint8))
         row = [img.permute(1, 2, 0).numpy(), colourise_labels(lab)]
         if seg.metal is not None:
@@ -342,7 +377,7 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
         ep, eg, emp, emg = [], [], [], []
         for i in _progress(range(len(eval_scene)), f"segment eval ({eval_scene.split})", len(eval_scene)):
             seg = _run(eval_scene.load_image(i))
-            ep.append(seg.labels[0])
+            ep.append(_labels(seg))
             eg.append(eval_scene.load_extra(i, "semantic"))
             if seg.metal is not None and "metal" in eval_scene.frames[i].extras:
                 emp.append(seg.metal[0] > 0.5)

@@ -57,6 +57,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--steps", type=POSITIVE, default=300, help="builtin: fine-tuning steps (default 300)")
     q.add_argument("--seed", type=COUNT, default=0)
     q.add_argument("--no-onnx", action="store_true", help="builtin: do not write segmenter.onnx")
+    q.add_argument("--scene-prior", choices=["on", "off"], default="on",
+                   help="on (default): relabel with the scene's own class prior, estimated by EM over all its photos "
+                        "(drops classes the room lacks, e.g. a display case); off: each photo's own argmax")
     q.set_defaults(func=cmd_segment)
 
     q = stages.add_parser("colour", help="per-image exposure / white-balance gains against the scene's consensus")
@@ -178,7 +181,8 @@ def cmd_segment(args: argparse.Namespace) -> int:
         raise DarsError(f"--model {args.model}: file not found")
     with _out(args, scene, "segment").guard() as out:
         info = priors_segment(scene, out, args.backend, args.model, args.train_every, eval_scene, tcfg,
-                              export_onnx=None if args.no_onnx else export_segmenter_onnx)
+                              export_onnx=None if args.no_onnx else export_segmenter_onnx,
+                              scene_prior=args.scene_prior == "on")
     if args.json:
         print_json(info)
         return 0
