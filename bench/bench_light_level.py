@@ -51,7 +51,7 @@ def gallery_levels(path: str, model) -> dict | None:
     lin = srgb_to_linear(srgb)
     pix = lin.permute(1, 0, 2, 3).reshape(3, -1)
     pix = pix[:, :: max(1, pix.shape[1] // 2_000_000)]  # torch.quantile's input limit
-    net_sh = aggregate_sh(predict_sh(model, srgb), "mean")
+    net_sh = aggregate_sh(predict_sh(model, srgb, c2w=sc.cameras.c2w), "mean")
     grey_sh = grey_ambient_sh(float(lin.mean()))
     truth = sc.sh.float()
     row = {"gallery": path, "truth": truth[0].numpy(), "net": net_sh[0].numpy(), "grey": grey_sh[0].numpy()}

@@ -56,7 +56,7 @@ def evaluate_on_scene(model, scene_path: Path, train_mean_sh) -> dict | None:
         if sc.sh is None:
             return None
         imgs = torch.stack([sc.load_image(i) for i in range(len(sc))])
-        per = predict_sh(model, imgs)
+        per = predict_sh(model, imgs, c2w=sc.cameras.c2w)
         gt = sc.sh.float()
         out[split] = {
             "views": len(sc),
@@ -113,6 +113,10 @@ def main(argv=None) -> int:
     ap.add_argument("--huber-delta", type=float, default=1.0)
     ap.add_argument("--output-range", default=None, choices=["absolute", "image"], help="default: the preset's (image)")
     ap.add_argument("--dc-max", type=float, default=None, help="upper end of L00 (default: the preset's)")
+    ap.add_argument("--frame", default="world", choices=["world", "heading"],
+                    help="answer in the world frame from the photo alone, or relative to each photo's heading, turned "
+                         "into the world by its pose (toolkit.lightnet.LightNetConfig.frame)")
+    ap.add_argument("--hflip", action="store_true", help="flip half the photos left-right, targets mirrored (--frame heading)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--eval-data", default=None, metavar="NPZ",
@@ -158,8 +162,9 @@ def main(argv=None) -> int:
         return 2
     train, test = ds.split("train"), ds.split("test")
     over = ({"output_range": args.output_range} if args.output_range else {}) | ({"dc_max": args.dc_max} if args.dc_max is not None else {})
+    over["frame"] = args.frame
     cfg = TrainLightNetConfig(arch=lightnet_config(args.arch, **over), loss=args.loss, huber_delta=args.huber_delta, steps=args.steps, batch_size=args.batch_size, lr=args.lr, weight_decay=args.weight_decay,
-                              exposure_jitter=args.exposure_jitter, shift_px=args.shift_px, seed=args.seed)
+                              exposure_jitter=args.exposure_jitter, shift_px=args.shift_px, hflip=args.hflip, seed=args.seed)
     t0 = time.time()
     model, hist = train_lightnet(ds, cfg)
     ev = evaluate_lightnet(model, test, hist.train_mean_sh)

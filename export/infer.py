@@ -58,7 +58,8 @@ from toolkit.pinhole import PinholeCamera
 
 __all__ = ["InferError", "PinholeCamera", "FieldModel", "RenderSettings", "SceneSpace", "load_model", "render_view",
            "render_rays", "generate_camera_rays", "contract", "box_radius", "contracted_edges",
-           "camera_from_transforms", "read_photo", "infer_segment", "infer_light", "FIELD_FILES", "REQUIRED_FILES"]
+           "camera_from_transforms", "poses_for_photos", "read_photo", "infer_segment", "infer_light",
+           "camera_heading_np", "FIELD_FILES", "REQUIRED_FILES"]
 
 FIELD_FILES = {"fp32": "field.onnx", "fp16": "field_fp16.onnx", "int8": "field_int8.onnx"}
 """Field graph file per precision."""
@@ -446,6 +447,19 @@ def _load_npz(path: Path):
 
 
 # ====================================================================== cameras and rays
+def _read_transforms(path: Path) -> dict:
+    """The JSON object of a ``transforms*.json`` with a ``frames`` list (InferError naming the file otherwise)."""
+    if not path.is_file():
+        raise InferError(f"transforms file not found: {path}")
+    try:
+        meta = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as e:
+        raise InferError(f"{path} is not a valid transforms JSON ({e})") from e
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames", []), list):
+        raise InferError(f"{path}: expected a JSON object with a 'frames' list")
+    return meta
+
+
 def camera_from_transforms(path: str | os.PathLike, index: int) -> PinholeCamera:
     """Camera ``index`` of a Blender/nerfstudio ``transforms*.json`` (no torch; no undistortion or downscaling).
 
@@ -456,14 +470,7 @@ def camera_from_transforms(path: str | os.PathLike, index: int) -> PinholeCamera
         InferError: missing file or frame, or intrinsics that cannot be determined.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InferError(f"transforms file not found: {path}")
-    try:
-        meta = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as e:
-        raise InferError(f"{path} is not a valid transforms JSON ({e})") from e
-    if not isinstance(meta, dict) or not isinstance(meta.get("frames", []), list):
-        raise InferError(f"{path}: expected a JSON object with a 'frames' list")
+    meta = _read_transforms(path)
     frames = meta.get("frames", [])
     if not 0 <= index < len(frames):
         raise InferError(f"{path}: frame index {index} out of range (the file has {len(frames)} frames)")
@@ -780,6 +787,29 @@ def render_view(model: FieldModel, camera: PinholeCamera, settings: RenderSettin
 
 
 # ====================================================================== photos: segmentation and light
+def poses_for_photos(path: str | os.PathLike, photos: Sequence[str | os.PathLike]) -> np.ndarray:
+    """float64 [N, 4, 4] camera-to-world poses of ``photos`` from a ``transforms*.json``, matched by file name
+    without extension against the frames' ``file_path`` (no torch).
+
+    Raises:
+        InferError: missing or invalid file, or a photo no frame names.
+    """
+    path = Path(path)
+    try:
+        frames = {Path(str(fr["file_path"])).stem: fr["transform_matrix"] for fr in _read_transforms(path)["frames"]}
+    except (KeyError, TypeError) as e:
+        raise InferError(f"{path}: every frame needs file_path and transform_matrix (missing {e})") from e
+    out = []
+    for ph in photos:
+        stem = Path(str(ph)).stem
+        if stem not in frames:
+            raise InferError(f"{path}: no frame's file_path names photo {ph} (looked for '{stem}' among "
+                             f"{len(frames)} frames)")
+        m = np.asarray(frames[stem], np.float64)
+        out.append(np.vstack([m[:3], [0.0, 0.0, 0.0, 1.0]]) if m.shape == (3, 4) else m)
+    return np.stack(out) if out else np.zeros((0, 4, 4))
+
+
 def read_photo(photo) -> np.ndarray:
     """float32 [H, W, 3] sRGB in [0, 1] from a path (PNG/JPEG, via Pillow) or an array (uint8 or float [0, 1])."""
     if isinstance(photo, (str, os.PathLike)):
@@ -907,11 +937,29 @@ def _bilinear(img: np.ndarray, h: int, w: int) -> np.ndarray:
     return (top * (1 - fy) + bot * fy).astype(np.float32)
 
 
-def infer_light(path: str | os.PathLike, photos: Sequence, threads: int | None = None) -> np.ndarray:
+def camera_heading_np(c2w: np.ndarray) -> np.ndarray:
+    """float32 [N, 2] (cos ψ, sin ψ) of each camera's forward direction turned horizontal (world +z up); the numpy
+    twin of :func:`toolkit.lightnet.camera_heading` (no torch here)."""
+    c2w = np.asarray(c2w, np.float64)
+    if c2w.ndim != 3 or c2w.shape[1:] not in ((4, 4), (3, 4)):
+        raise InferError(f"camera poses must be N x 4 x 4 (or N x 3 x 4), got {list(c2w.shape)}")
+    fwd, up = -c2w[:, :3, 2], c2w[:, :3, 1]
+    h = fwd[:, :2] - np.sign(fwd[:, 2:3]) * up[:, :2]
+    n = np.linalg.norm(h, axis=1, keepdims=True)
+    if (n < 1e-6).any():
+        raise InferError(f"camera {int(np.nonzero(n[:, 0] < 1e-6)[0][0])} has no horizontal direction (a degenerate pose)")
+    return (h / n).astype(np.float32)
+
+
+def infer_light(path: str | os.PathLike, photos: Sequence, threads: int | None = None,
+                c2w: np.ndarray | None = None) -> np.ndarray:
     """SH light [N, 9, 3] (SPEC order, incident radiance, world frame) of photos with ``light.onnx``.
 
     Contract of ``light.onnx`` (:func:`export.onnx_light.export_lightnet_onnx`): input N x 3 x H x W float32,
-    sRGB in [0, 1]; output N x 9 x 3 (or N x 27, coefficient-major). Photos are resized to the trained
+    sRGB in [0, 1], and for a network that answers relative to each photo's heading (``dars.frame = heading``,
+    the shipped one) a second input ``heading`` N x 2 computed here from ``c2w`` (each photo's camera-to-world
+    pose, world +z up: the SH comes back in that world); output N x 9 x 3 (or N x 27, coefficient-major). Photos
+    are resized to the trained
     ``dars.input_size`` as :func:`toolkit.lightnet.predict_sh` does (area averaging in linear light when
     shrinking — ``dars.resize = area-srgb`` in the metadata averages the sRGB values instead — bilinear when
     enlarging, clamped to [0, 1]); a graph with a static H x W is fed at that size; ``dars.normalize =
@@ -929,6 +977,15 @@ def infer_light(path: str | os.PathLike, photos: Sequence, threads: int | None =
     name, sh_, sw_ = _image_input(sess)
     meta = sess.get_modelmeta().custom_metadata_map
     size = int(meta["dars.input_size"]) if meta.get("dars.input_size", "").isdigit() else None
+    heading_in = next((i.name for i in sess.get_inputs()[1:] if i.name == "heading"), None)
+    headings = None
+    if heading_in is not None:
+        if c2w is None:
+            raise InferError(f"{f} estimates the light relative to each photo's heading: give the photos' camera "
+                             "poses (dars infer DIR --light PHOTO... --poses transforms.json)")
+        headings = camera_heading_np(c2w)
+        if len(headings) != len(photos):
+            raise InferError(f"{len(photos)} photos but {len(headings)} camera poses")
     th, tw = (sh_, sw_) if sh_ is not None and sw_ is not None else ((size, size) if size else (None, None))
     out = []
     linear_area = meta.get("dars.resize", "area-linear") != "area-srgb"
@@ -943,7 +1000,10 @@ def infer_light(path: str | os.PathLike, photos: Sequence, threads: int | None =
             img = np.clip(img, 0.0, 1.0).astype(np.float32)
         if meta.get("dars.normalize") == "imagenet":
             img = (img - np.array([0.485, 0.456, 0.406], np.float32)) / np.array([0.229, 0.224, 0.225], np.float32)
-        y = sess.run(None, {name: np.ascontiguousarray(img.transpose(2, 0, 1)[None], np.float32)})[0]
+        feed = {name: np.ascontiguousarray(img.transpose(2, 0, 1)[None], np.float32)}
+        if headings is not None:
+            feed[heading_in] = headings[len(out)][None]
+        y = sess.run(None, feed)[0]
         if y.size != 27:
             raise InferError(f"{f}: output has {y.size} values per image; expected 27 SH coefficients")
         out.append(y.reshape(9, 3))

@@ -83,6 +83,9 @@ __all__ = [
     "LightNet",
     "sh_from_logits",
     "logits_from_sh",
+    "camera_heading",
+    "rotate_sh_heading",
+    "MIRROR_Y_SIGNS",
     "LightDataset",
     "load_light_dataset",
     "gallery_dirs",
@@ -135,12 +138,19 @@ class LightNetConfig:
     output_range: Literal["absolute", "image"] = "image"
     """``absolute``: L00 ∈ [0, dc_max]; ``image``: L00 ∈ [0, dc_max · c / Y00] with c the input image's mean
     linear colour per channel (the range follows the exposure)."""
+    frame: Literal["world", "heading"] = "world"
+    """``world``: the network answers in the world frame from the photo alone. ``heading``: it answers in the frame
+    of the photo's heading (+x the camera's forward direction turned horizontal, +z up, +y to its left) and
+    :func:`predict_sh` turns that into the world frame with the camera's pose (:func:`camera_heading`), which a photo
+    cannot show."""
 
     def __post_init__(self):
         if len(self.blocks) != 4 or len(self.widths) != 4 or min(self.blocks) < 1 or min(self.widths) < 1:
             raise ConfigError(f"LightNetConfig: blocks {self.blocks} and widths {self.widths} need 4 positive entries")
         if self.output_range not in ("absolute", "image"):
             raise ConfigError(f"LightNetConfig: output_range={self.output_range!r}: choose 'absolute' or 'image'")
+        if self.frame not in ("world", "heading"):
+            raise ConfigError(f"LightNetConfig: frame={self.frame!r}: choose 'world' or 'heading'")
         if self.fc_hidden < 1 or not self.dc_max > 0 or self.input_size < 16:
             raise ConfigError(f"LightNetConfig: fc_hidden={self.fc_hidden} >= 1, dc_max={self.dc_max} > 0 and "
                               f"input_size={self.input_size} >= 16 are required")
@@ -232,11 +242,71 @@ def logits_from_sh(sh: torch.Tensor, dc_max: float | torch.Tensor, eps: float = 
     return torch.logit(torch.cat([dc, u], 1)).reshape(sh.shape[0], 27)
 
 
+def camera_heading(c2w: torch.Tensor) -> torch.Tensor:
+    """Each camera's heading: float [N, 2] (cos ψ, sin ψ) of its forward direction turned horizontal (world +z up).
+
+    The forward direction is ``−c2w[:, :3, 2]`` (OpenGL cameras look down −z). Its horizontal part vanishes for a
+    camera looking straight up or down, so the camera's up vector, turned horizontal, is added with the sign that
+    points it the same way (``f_xy − sign(f_z) u_xy``): the heading then turns smoothly through every pitch.
+
+    Args:
+        c2w: float [N, 4, 4] or [N, 3, 4] camera-to-world matrices (world +z up, as loaded scenes are).
+
+    Returns:
+        float [N, 2] unit vectors (cos ψ, sin ψ), ψ measured from world +x towards +y.
+    """
+    if c2w.ndim != 3 or tuple(c2w.shape[1:]) not in ((4, 4), (3, 4)):
+        raise LightNetError(f"camera_heading: c2w must be [N, 4, 4] or [N, 3, 4], got {list(c2w.shape)}")
+    fwd, up = -c2w[:, :3, 2], c2w[:, :3, 1]
+    h = fwd[:, :2] - torch.sign(fwd[:, 2:3]) * up[:, :2]
+    n = h.norm(dim=1, keepdim=True)
+    if bool((n < 1e-6).any()):
+        bad = int(torch.nonzero(n[:, 0] < 1e-6)[0])
+        raise LightNetError(f"camera_heading: camera {bad} has no horizontal direction (a degenerate pose)")
+    return h / n
+
+
+def rotate_sh_heading(sh: torch.Tensor, heading: torch.Tensor, inverse: bool = False) -> torch.Tensor:
+    """Rotate SH about world +z by each heading: heading frame → world frame (``inverse``: world → heading).
+
+    The closed form of :func:`toolkit.sh.rotate_sh` for a rotation about z by ψ: the pairs (k 3, k 1) = (x, y) and
+    (k 7, k 5) = (xz, yz) turn by ψ, (k 8, k 4) = (x² − y², 2xy) by 2ψ; k 0, 2 and 6 stay. Plain arithmetic
+    (ONNX-traceable).
+
+    Args:
+        sh: float [B, 9, 3].
+        heading: float [B, 2] (cos ψ, sin ψ) from :func:`camera_heading`.
+        inverse: rotate by −ψ instead.
+
+    Returns:
+        float [B, 9, 3].
+    """
+    c = heading[:, 0:1]
+    s = heading[:, 1:2] * (-1.0 if inverse else 1.0)
+    c2, s2 = c * c - s * s, 2.0 * c * s
+
+    def turn(a, b, cc, ss):  # (a, b): the coefficients of (cos, sin)-like basis functions
+        return a * cc - b * ss, a * ss + b * cc
+
+    x, y = turn(sh[:, 3], sh[:, 1], c, s)
+    xz, yz = turn(sh[:, 7], sh[:, 5], c, s)
+    d2, xy = turn(sh[:, 8], sh[:, 4], c2, s2)
+    return torch.stack([sh[:, 0], y, sh[:, 2], x, xy, yz, sh[:, 6], xz, d2], dim=1)
+
+
+MIRROR_Y_SIGNS = (1.0, -1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0, 1.0)
+"""Per coefficient, its sign under the mirror y → −y (the coefficients odd in y: k 1 = y, 4 = xy, 5 = yz). In the
+heading frame +y is the photo's left, so a photo flipped left-right has its heading-frame light mirrored so."""
+
+
 class LightNet(nn.Module):
     """Eq. 11: ResNet trunk → global average pool → FC ``width → fc_hidden → 27`` → physical range → [B, 9, 3].
 
-    ``forward(images)``: images float [B, 3, H, W] sRGB in [0, 1] (any H, W ≥ 16); returns float [B, 9, 3] SH of
-    incident radiance in the world frame (SPEC convention). The network is exportable to ONNX as is
+    ``forward(images, heading=None)``: images float [B, 3, H, W] sRGB in [0, 1] (any H, W ≥ 16); returns float
+    [B, 9, 3] SH of incident radiance (SPEC convention) in the world frame. A ``cfg.frame == "heading"`` network
+    answers in each photo's heading frame and turns that into the world frame by ``heading`` (float [B, 2],
+    :func:`camera_heading`); without ``heading`` it returns the heading-frame SH (what it is trained on). A
+    ``world`` network ignores ``heading``. The network is exportable to ONNX as is
     (:func:`export.onnx_light.export_lightnet_onnx`).
     """
 
@@ -267,8 +337,11 @@ class LightNet(nn.Module):
         c = srgb_to_linear(images).mean(dim=(2, 3)).clamp_min(1e-4)
         return self.cfg.dc_max * c / SH_C0
 
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        return sh_from_logits(self.head(self.features(images)), self.dc_range(images))
+    def forward(self, images: torch.Tensor, heading: torch.Tensor | None = None) -> torch.Tensor:
+        sh = sh_from_logits(self.head(self.features(images)), self.dc_range(images))
+        if heading is not None and self.cfg.frame == "heading":
+            sh = rotate_sh_heading(sh, heading.to(sh))
+        return sh
 
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
@@ -286,6 +359,8 @@ class LightDataset:
         test: bool [N] held-out lightings.
         sources: per lighting, where it came from (``pisa``, ``sky``...).
         meta: what the generator recorded (command, seed...).
+        heading: float [N, 2] each view's camera heading (:func:`camera_heading`), or None when the poses are
+            unknown (a ``frame="heading"`` network cannot train on such data).
     """
 
     radiance: torch.Tensor
@@ -294,6 +369,7 @@ class LightDataset:
     test: torch.Tensor
     sources: tuple[str, ...] = ()
     meta: dict = field(default_factory=dict)
+    heading: torch.Tensor | None = None
 
     def __post_init__(self):
         n = check_shape(self.radiance, "N 3 H W", "radiance")["N"]
@@ -301,6 +377,8 @@ class LightDataset:
         if self.lighting.shape != (n,) or self.test.shape != (n,):
             raise LightNetError(f"LightDataset: lighting {list(self.lighting.shape)} and test {list(self.test.shape)} "
                                 f"must both be [{n}]")
+        if self.heading is not None:
+            check_shape(self.heading, f"{n} 2", "heading")
 
     def __len__(self) -> int:
         return int(self.radiance.shape[0])
@@ -315,7 +393,8 @@ class LightDataset:
             raise ConfigError(f"split {which!r}: choose 'train' or 'test'")
         keep = self.test if which == "test" else ~self.test
         idx = torch.nonzero(keep).flatten()
-        return LightDataset(self.radiance[idx], self.sh[idx], self.lighting[idx], self.test[idx], self.sources, self.meta)
+        return LightDataset(self.radiance[idx], self.sh[idx], self.lighting[idx], self.test[idx], self.sources, self.meta,
+                            None if self.heading is None else self.heading[idx])
 
     def source_of(self) -> list[str]:
         """Per view, the source of its lighting (``"?"`` when unknown)."""
@@ -345,10 +424,11 @@ def load_light_dataset(path: str | os.PathLike) -> LightDataset:
     rad = torch.from_numpy(d["radiance"].astype(np.float32)).permute(0, 3, 1, 2).contiguous() * k[:, None, None, None]
     meta = json.loads(str(d["meta"])) if "meta" in d else {}
     meta["path"] = str(path)
+    heading = camera_heading(torch.from_numpy(d["c2w"].astype(np.float32))) if "c2w" in d else None
     return LightDataset(radiance=rad, sh=torch.from_numpy(d["sh"].astype(np.float32)) * k[:, None, None],
                         lighting=torch.from_numpy(d["lighting"].astype(np.int64)),
                         test=torch.from_numpy(d["test"].astype(bool)),
-                        sources=tuple(str(s) for s in d.get("sources", [])), meta=meta)
+                        sources=tuple(str(s) for s in d.get("sources", [])), meta=meta, heading=heading)
 
 
 def gallery_dirs(*roots: str | os.PathLike) -> list[Path]:
@@ -414,7 +494,7 @@ def light_dataset_from_galleries(dirs: list[str | os.PathLike], size: int = 64, 
     all_dirs += [d for d in held if d not in all_dirs]
     if not all_dirs:
         raise LightNetError("light_dataset_from_galleries: no galleries (render some with samples/galleries.py)")
-    rads, shs, light, test, sources, info = [], [], [], [], [], []
+    rads, shs, light, test, sources, info, c2ws = [], [], [], [], [], [], []
     it = all_dirs
     if progress:
         from tqdm import tqdm
@@ -436,6 +516,7 @@ def light_dataset_from_galleries(dirs: list[str | os.PathLike], size: int = 64, 
                     raise LightNetError(f"{d}: frame {f.get('file_path')} has no radiance_path (linear .hdr)")
                 r = torch.from_numpy(read_hdr(d / f["radiance_path"])).permute(2, 0, 1)[None]
                 rads.append(F.adaptive_avg_pool2d(r, (size, size))[0] if r.shape[-2:] != (size, size) else r[0])
+                c2ws.append(torch.tensor(f["transform_matrix"], dtype=torch.float32))
         nv = len(rads) - n0
         if nv == 0:
             raise LightNetError(f"{d}: no frames in {splits}")
@@ -450,7 +531,8 @@ def light_dataset_from_galleries(dirs: list[str | os.PathLike], size: int = 64, 
     return LightDataset(radiance=torch.stack(rads).float().contiguous(), sh=torch.stack(shs), lighting=torch.tensor(light),
                         test=torch.tensor(test), sources=tuple(sources),
                         meta={"galleries": info, "size": size, "holdout_probes": list(holdout_probes),
-                              "heldout_galleries": [str(d) for d in held]})
+                              "heldout_galleries": [str(d) for d in held]},
+                        heading=camera_heading(torch.stack(c2ws)))
 
 
 def concat_light_datasets(*datasets: LightDataset) -> LightDataset:
@@ -466,9 +548,10 @@ def concat_light_datasets(*datasets: LightDataset) -> LightDataset:
         light.append(d.lighting + off)
         sources += [d.sources[i] if i < len(d.sources) else "?" for i in range(n_l)]
         off += n_l
+    heading = (torch.cat([d.heading for d in datasets]) if all(d.heading is not None for d in datasets) else None)
     return LightDataset(torch.cat([d.radiance for d in datasets]), torch.cat([d.sh for d in datasets]),
                         torch.cat(light), torch.cat([d.test for d in datasets]), tuple(sources),
-                        {"parts": [d.meta for d in datasets]})
+                        {"parts": [d.meta for d in datasets]}, heading)
 
 
 # ============================================================================ training
@@ -494,6 +577,9 @@ class TrainLightNetConfig:
     """Each sample's exposure (image and GT SH together) is scaled by 2^u, u ~ U(−j, j) stops."""
     shift_px: int = 3
     """Random translation of up to this many pixels (edge padding): small camera jitter."""
+    hflip: bool = False
+    """Flip half the photos left-right with their targets mirrored (:data:`MIRROR_Y_SIGNS`). Only for a
+    ``frame="heading"`` network: a flipped photo of a world-frame target would mirror the world."""
     seed: int = 0
     progress: bool = True
 
@@ -504,6 +590,9 @@ class TrainLightNetConfig:
         if self.steps < 0 or self.batch_size < 1 or not self.lr > 0 or self.exposure_jitter < 0 or self.shift_px < 0:
             raise ConfigError(f"TrainLightNetConfig: steps={self.steps} >= 0, batch_size={self.batch_size} >= 1, "
                               f"lr={self.lr} > 0, exposure_jitter, shift_px >= 0 are required")
+        if self.hflip and self.arch.frame != "heading":
+            raise ConfigError("TrainLightNetConfig: hflip=True needs arch.frame='heading' (flipping a photo of a "
+                              "world-frame target would mirror the world)")
 
 
 @dataclass(frozen=True)
@@ -531,6 +620,11 @@ def _batch(ds: LightDataset, idx: torch.Tensor, cfg: TrainLightNetConfig, g: tor
         k = torch.exp2((torch.rand(len(idx), generator=g) * 2 - 1) * cfg.exposure_jitter).to(rad)
         rad, sh = rad * k[:, None, None, None], sh * k[:, None, None]
     x = linear_to_srgb(rad.clamp(0.0, 1.0))
+    if cfg.hflip:
+        flip = torch.rand(len(idx), generator=g) < 0.5
+        x = torch.where(flip[:, None, None, None], x.flip(-1), x)
+        signs = torch.tensor(MIRROR_Y_SIGNS, dtype=sh.dtype)[None, :, None]
+        sh = torch.where(flip[:, None, None], sh * signs, sh)
     if cfg.shift_px > 0:
         s = cfg.shift_px
         H, W = x.shape[-2:]
@@ -570,8 +664,13 @@ def train_lightnet(dataset: LightDataset, cfg: TrainLightNetConfig = TrainLightN
     torch.manual_seed(cfg.seed)
     g = torch.Generator().manual_seed(cfg.seed)
     device = train.radiance.device
-    mean_sh = train.sh.mean(0)
+    mean_sh = train.sh.mean(0)  # world frame: baseline (a)
     net = model if model is not None else LightNet(cfg.arch)
+    if net.cfg.frame == "heading":  # targets in each view's heading frame
+        if train.heading is None:
+            raise LightNetError("train_lightnet: a frame='heading' network needs the views' camera headings "
+                                "(LightDataset.heading, from the cameras' poses); this data set has none")
+        train = replace(train, sh=rotate_sh_heading(train.sh, train.heading, inverse=True))
     net = net.to(device)
     if model is None:
         with torch.no_grad():
@@ -626,7 +725,8 @@ def _resize(images: torch.Tensor, size: int) -> torch.Tensor:
     return F.interpolate(images, size=(size, size), mode="bilinear", align_corners=False).clamp(0.0, 1.0)
 
 
-def predict_sh(model: LightNet, images: torch.Tensor, batch_size: int = 64) -> torch.Tensor:
+def predict_sh(model: LightNet, images: torch.Tensor, batch_size: int = 64, *, c2w: torch.Tensor | None = None,
+               heading: torch.Tensor | None = None) -> torch.Tensor:
     """Per-image SH from photos.
 
     Args:
@@ -634,24 +734,37 @@ def predict_sh(model: LightNet, images: torch.Tensor, batch_size: int = 64) -> t
         images: float [B, 3, H, W] sRGB in [0, 1] (resized to ``model.cfg.input_size``: area averaging in linear
             light when shrinking, bilinear when enlarging).
         batch_size: images per forward pass.
+        c2w: float [B, 4, 4] the photos' camera-to-world poses (world +z up, as :func:`toolkit.scene.load_scene`
+            gives them). Required by a ``frame="heading"`` network (the shipped one), which answers relative to
+            each photo's heading; ignored by a ``world`` one.
+        heading: float [B, 2] the headings themselves (:func:`camera_heading`), instead of ``c2w``.
 
     Returns:
         float [B, 9, 3] radiance SH (SPEC convention, world frame) on ``images.device``.
 
     Raises:
-        ShapeError / LightNetError: wrong shape, or values outside [0, 1] (linear HDR input: convert to sRGB first).
+        ShapeError / LightNetError: wrong shape, values outside [0, 1] (linear HDR input: convert to sRGB first), or
+        a heading network without poses.
     """
     check_shape(images, "B 3 H W", "images")
     if images.numel() and (float(images.min()) < -1e-3 or float(images.max()) > 1 + 1e-3):
         raise LightNetError(f"images must be sRGB in [0, 1], got values in [{float(images.min()):.3g}, "
                             f"{float(images.max()):.3g}] (convert linear HDR with toolkit.io.linear_to_srgb after clipping)")
+    if model.cfg.frame == "heading":
+        if heading is None and c2w is None:
+            raise LightNetError("this light network answers relative to each photo's heading: pass the photos' "
+                                "camera poses (predict_sh(..., c2w=scene.cameras.c2w)); a photo alone cannot say "
+                                "which way the room's light lies in the world")
+        heading = camera_heading(c2w.float()) if heading is None else heading
+        check_shape(heading, f"{images.shape[0]} 2", "heading")
     model = model.eval()
     dev = next(model.parameters()).device
     out = []
     with torch.no_grad():
         for i in range(0, images.shape[0], batch_size):
             x = _resize(images[i:i + batch_size].to(dev, torch.float32), model.cfg.input_size)
-            out.append(model(x).to(images.device))
+            h = None if model.cfg.frame != "heading" else heading[i:i + batch_size].to(dev, torch.float32)
+            out.append(model(x, h).to(images.device))
     return torch.cat(out) if out else images.new_zeros(0, 9, 3)
 
 
@@ -725,7 +838,9 @@ def evaluate_lightnet(model: LightNet, dataset: LightDataset, train_mean_sh: tor
         raise LightNetError("evaluate_lightnet: empty data set")
     images = dataset.images()
     gt = dataset.sh
-    pred = predict_sh(model, images, batch_size)
+    if model.cfg.frame == "heading" and dataset.heading is None:
+        raise LightNetError("evaluate_lightnet: a frame='heading' network needs the views' headings (LightDataset.heading)")
+    pred = predict_sh(model, images, batch_size, heading=dataset.heading)
     base_a = train_mean_sh.to(gt)[None].expand_as(gt)
     base_b = mean_colour_sh(images)
     lin_mean = srgb_to_linear(images).mean(dim=(1, 2, 3))

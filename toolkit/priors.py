@@ -553,7 +553,7 @@ def priors_light(scene, out_dir=None, weights: str | None = None, reduce: str = 
             imgs = torch.stack(batch[k0:k1]).float()
             if not scene.srgb:
                 imgs = linear_to_srgb(imgs.clamp(0.0, 1.0))
-            per.append(predict_sh(model, imgs, batch_size))
+            per.append(predict_sh(model, imgs, batch_size, c2w=scene.cameras.c2w[i + k0:i + k1]))
             base_b.append(mean_colour_sh(imgs))
     per_image = torch.cat(per)
     coeffs = aggregate_sh(per_image, reduce)
@@ -565,11 +565,14 @@ def priors_light(scene, out_dir=None, weights: str | None = None, reduce: str = 
         "per_image": [{"key": f.key, "coeffs": c.tolist()} for f, c in zip(scene.frames, per_image)],
         "model": {"path": str(Path(weights) if weights else DEFAULT_WEIGHTS), "arch": model.cfg.name,
                   "parameters": model.num_parameters(), "input_size": model.cfg.input_size,
-                  "output_range": model.cfg.output_range, "training_command": meta.get("training_command"),
+                  "output_range": model.cfg.output_range, "frame": model.cfg.frame,
+                  "training_command": meta.get("training_command"),
                   "heldout_env_light_l2": meta.get("heldout_env_light_l2")},
         "scene": str(scene.source), "split": scene.split, "views": len(scene),
         "convention": "real SH order 2, SPEC order, incident radiance, world frame +z up, coeffs 9 x [r, g, b]",
-        "note": "world-frame bands 1-2 are only meaningful for rooms like the one the network was trained on",
+        "note": ("bands 1-2 predicted relative to each photo's heading and turned into the world frame with its pose"
+                 if model.cfg.frame == "heading" else
+                 "world-frame bands 1-2 are only meaningful for rooms like the one the network was trained on"),
         "evaluation": None,
     }
     if photos_have_transparency(scene):

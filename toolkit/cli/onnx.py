@@ -54,6 +54,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--out", default=None, help="--camera: output PNG (required); --segment: output directory")
     q.add_argument("--precision", default="fp32", choices=["fp32", "fp16", "int8"], help="field graph to use")
     q.add_argument("--sh", default=None, help="JSON file with {'coeffs': [[r,g,b] x 9]} to relight with")
+    q.add_argument("--poses", default=None, metavar="TRANSFORMS",
+                   help="--light: transforms JSON holding the photos' camera poses (matched by file name; world +z "
+                        "up); the shipped light network needs them")
     q.add_argument("--threads", type=COUNT, default=0, help="ONNX Runtime threads (0: its default)")
     q.add_argument("--force", action="store_true",
                    help="--camera: replace --out (and its sibling images); --segment: write into a non-empty folder")
@@ -163,7 +166,8 @@ def cmd_infer(args: argparse.Namespace) -> int:
         if args.camera:
             return _infer_camera(args, threads)
         if args.light:
-            sh = infer.infer_light(args.dir, args.light, threads)
+            c2w = infer.poses_for_photos(args.poses, args.light) if args.poses else None
+            sh = infer.infer_light(args.dir, args.light, threads, c2w=c2w)
             out = {"photos": list(args.light), "coeffs": sh.tolist(),
                    "convention": "real SH order 2, SPEC order, incident radiance, world frame +z up"}
             if len(args.light) > 1:
