@@ -298,12 +298,12 @@ def _calibrated(labels: torch.Tensor, confidence: torch.Tensor, prior: torch.Ten
 
 
 def test_scene_prior_drops_a_class_the_scene_lacks_and_keeps_a_small_real_one():
-    """A network trained under a flat prior answers 'display' on 2 % of the pixels at low confidence in a room with no
-    display case, and 'frame' on 0.3 % (true frames) with high confidence: EM removes the first, keeps the second."""
+    """A network answers 'display' on 2 % of the pixels at low confidence in a room with no display case, and 'frame'
+    on 0.3 % (true frames) with high confidence: EM removes the first, keeps the second."""
     from toolkit.segment import apply_scene_prior, estimate_scene_prior
 
     g = torch.Generator().manual_seed(0)
-    pt = torch.full((NUM_CLASSES,), 1.0 / NUM_CLASSES, dtype=torch.float64)
+    pt = torch.tensor([0.16, 0.08, 0.05, 0.10, 0.36, 0.18, 0.07], dtype=torch.float64)  # as the shipped network's
     n = 20000
     truth = torch.full((n,), 4)  # wall
     truth[:6000] = 5  # floor
@@ -319,13 +319,19 @@ def test_scene_prior_drops_a_class_the_scene_lacks_and_keeps_a_small_real_one():
     P[fake, 4] = 0.35  # their second guess is the wall
     P[fake] = P[fake] / P[fake].sum(1, keepdim=True)
     assert (P.argmax(1) == 2).sum() == 400
-    pi = estimate_scene_prior(P, pt, floor=0.03)
+    pi = estimate_scene_prior(P, pt)  # the defaults: floor 0.03, ceiling 2
     assert torch.isclose(pi.sum(), torch.tensor(1.0, dtype=torch.float64))
     assert pi[2] < 0.04 * pt[2] and pi[1] > 0.002, pi
     relab = apply_scene_prior(P.T.reshape(1, NUM_CLASSES, 1, n), pi, pt)[0].argmax(0).flatten()
     assert (relab == 2).sum() == 0 and (relab[fake] == 4).all()
     assert (relab[8000:8060] == 1).all() and (relab[:6000] == 5).all()
     assert torch.allclose(estimate_scene_prior(P[:0], pt), pt)  # no pixel: the training prior
+    # a network that leans to 'painting' everywhere (a real capture it does not understand) cannot make the whole
+    # scene painting: the ceiling holds its prior at 2x the training prior, and the others take the rest
+    lean = _calibrated(torch.zeros(n, dtype=torch.long), torch.full((n,), 0.5, dtype=torch.float64), pt, g)
+    pi = estimate_scene_prior(lean, pt, floor=0.03, ceiling=2.0)
+    assert abs(float(pi[0]) - 2 * float(pt[0])) < 1e-6 and torch.isclose(pi.sum(), torch.tensor(1.0, dtype=pi.dtype))
+    assert float(estimate_scene_prior(lean, pt, floor=0.03, ceiling=1e9)[0]) > 0.9  # plain EM: all painting
     with pytest.raises(ConfigError, match="floor"):
         estimate_scene_prior(P, pt, floor=2.0)
 
