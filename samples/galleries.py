@@ -6,7 +6,8 @@ Seeds:
   They are held out: no code path is tuned on them one by one and no network is trained on them. Do not add them to
   any training set, and do not pick or drop seeds after looking at scores.
 * :data:`PRIOR_TRAIN_SEEDS` — a disjoint range for training the shipped segmentation and light networks (render
-  them with the ``prior`` profile).
+  them with the ``prior`` profile, and with the ``light`` profile — 8 views of 64 px, ~20 s a room on one core —
+  for many more rooms and lightings for the light network).
 
 Cache layout (never inside the repository)::
 
@@ -23,6 +24,7 @@ Usage::
 
     python samples/galleries.py --profile validation --seeds all      # render the missing validation galleries
     python samples/galleries.py --profile prior --seeds 0-299         # training galleries for the priors
+    python samples/galleries.py --profile light --seeds 500-699       # many small rooms for the light network
     python samples/galleries.py --profile validation --seeds all --status
 
     from galleries import VALIDATION_SEEDS, ensure_gallery

@@ -212,10 +212,14 @@ PROFILES: dict[str, RenderOptions] = {
                            target_noise_db=None, gt_subsamples=2, probe_face=32, probe_spp=64),
     "sample": RenderOptions(profile="sample", size=128, n_train=80, n_test=20, spp_per_pass=400, min_passes=1, max_passes=1,
                             target_noise_db=None, box=True),
+    "light": RenderOptions(profile="light", size=64, n_train=8, n_test=0, spp_per_pass=16, min_passes=2, max_passes=2,
+                           target_noise_db=None, gt_subsamples=1, probe_face=24, probe_spp=48),
     "tiny": RenderOptions(profile="tiny", size=24, n_train=2, n_test=1, spp_per_pass=4, min_passes=2, max_passes=2,
                           target_noise_db=None, gt_subsamples=2, probe_face=8, probe_spp=4, progress=False),
 }
-"""Named profiles. ``sample`` reproduces ``samples/gallery``; ``tiny`` is for tests."""
+"""Named profiles. ``sample`` reproduces ``samples/gallery``; ``prior`` trains the segmenter and the light network;
+``light`` is many small rooms for the light network (64 px, the network's input size; 8 views; no test split);
+``tiny`` is for tests."""
 
 
 # ------------------------------------------------------------------------------------------------------- the stage
