@@ -786,7 +786,7 @@ def train_class_prior(class_pixels, class_balance: bool = True) -> torch.Tensor:
 
     Its weighted cross-entropy (weights ∝ 1/√frequency when ``class_balance``) is the plain cross-entropy of a data
     set whose class frequencies are ``frequency x weight ∝ √frequency``: that, normalised, is the prior its softmax
-    answers under. Without class balance it is the frequency itself.
+    answers under. Without class balance it is the frequency itself. A class with no pixel gets 1e-4.
     """
     c = torch.as_tensor(class_pixels, dtype=torch.float64).flatten()
     if c.numel() != NUM_CLASSES or bool((c < 0).any()) or float(c.sum()) <= 0:
@@ -794,6 +794,7 @@ def train_class_prior(class_pixels, class_balance: bool = True) -> torch.Tensor:
                                 f"{c.tolist()}")
     f = c / c.sum()
     p = f.sqrt() if class_balance else f
+    p = (p / p.sum()).clamp_min(1e-4)  # a class the training set lacked: a tiny prior, not 0 (EM divides by it)
     return p / p.sum()
 
 
