@@ -14,11 +14,15 @@ Usage (1 thread; the data set is cached outside the repo)::
         --suns 0 --out ~/.cache/dars/lightnet/gallery_heldout_s1.npz      # a second, untouched held-out set
     OMP_NUM_THREADS=1 .venv/bin/python bench/bench_lightnet.py --arch small --save /tmp/lightnet_room.pt \
         --eval-data ~/.cache/dars/lightnet/gallery_heldout_s1.npz
-    # the shipped weights: procedural galleries, the pisa probe and the two validation galleries held out
+    # the shipped weights (heading frame): 300 procedural galleries (prior and light profiles), the pisa probe and
+    # four validation galleries held out; --mix-data reads the render_lightings.py --seed 0 set above
+    .venv/bin/python samples/galleries.py --profile prior --seeds 0-35,81-108,200-231
+    .venv/bin/python samples/galleries.py --profile light --seeds 500-699
+    V=~/.cache/dars/galleries/validation
     OMP_NUM_THREADS=1 .venv/bin/python bench/bench_lightnet.py --galleries ~/.cache/dars/galleries/prior \
-        --heldout-galleries ~/.cache/dars/galleries/validation/seed_1000000 ~/.cache/dars/galleries/validation/seed_1000001 \
-        --holdout-probes pisa --seeds 0-20,81-101 --steps 2000 --weight-decay 1e-3 --mix-data --seed 0 \
-        --save toolkit/weights/lightnet_small.pt    # --mix-data reads the render_lightings.py --seed 0 set above
+        ~/.cache/dars/galleries/light --seeds 0-35,81-108,200-231,500-699 --heldout-galleries $V/seed_1000000 \
+        $V/seed_1000001 $V/seed_1000002 $V/seed_1000003 --holdout-probes pisa --steps 3000 --weight-decay 1e-3 \
+        --mix-data --frame heading --hflip --seed 0 --save toolkit/weights/lightnet_small.pt
     # the paper's network (hours on one CPU core; minutes on a GPU):
     .venv/bin/python bench/bench_lightnet.py --arch resnet34 --steps 8000 --save /tmp/lightnet_resnet34.pt
 """
@@ -153,7 +157,7 @@ def main(argv=None) -> int:
             if args.mix_data:
                 room = load_light_dataset(args.data)
                 room = LightDataset(room.radiance, room.sh, room.lighting, room.test,
-                                    tuple(f"room/{x}" for x in room.sources), room.meta)
+                                    tuple(f"room/{x}" for x in room.sources), room.meta, room.heading)
                 ds = concat_light_datasets(ds, room)
         else:
             ds = load_light_dataset(args.data)
@@ -182,6 +186,7 @@ def main(argv=None) -> int:
         "heldout_galleries": args.heldout_galleries, "mix_data": args.data if args.mix_data else None,
         "train_seeds_by_probe": {p: sorted(g["seed"] for g in gal if g["probe"] == p and not g["heldout"])
                                  for p in sorted({g["probe"] for g in gal})},
+        "train_galleries": sum(1 for g in gal if not g["heldout"]),
         "heldout_seeds_by_source": {s: sorted(g["seed"] for g in gal if g["source"] == s and g["heldout"])
                                     for s in sorted({g["source"] for g in gal if g["heldout"]})},
         "units": "radiance = the frames' linear .hdr (exposure baked into the light powers), area-averaged to 64 px; "
