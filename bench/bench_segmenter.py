@@ -104,10 +104,11 @@ def score(net, scene_path: Path, split: str = "test", scene_prior: bool = True) 
             mp.append((seg.metal[0] > 0.5).flatten())
             mg.append(sc.load_extra(i, "metal").bool().flatten())
     miou, per = mean_iou(torch.cat(preds), torch.cat(gts))
-    out = {"scene": str(scene_path), "split": split, "views": len(sc), "miou": miou,
-           "miou_raw": mean_iou(torch.cat(raw), torch.cat(gts))[0],
+    miou_raw, per_raw = mean_iou(torch.cat(raw), torch.cat(gts))
+    out = {"scene": str(scene_path), "split": split, "views": len(sc), "miou": miou, "miou_raw": miou_raw,
            "scene_prior": None if prior is None else [round(float(v), 5) for v in prior[0]],
-           "per_class": {c: (None if v != v else round(v, 4)) for c, v in zip(SEMANTIC_CLASSES, per)}}
+           "per_class": {c: (None if v != v else round(v, 4)) for c, v in zip(SEMANTIC_CLASSES, per)},
+           "per_class_raw": {c: (None if v != v else round(v, 4)) for c, v in zip(SEMANTIC_CLASSES, per_raw)}}
     if mg:
         out["metal_iou"] = metal_iou(torch.cat(mp), torch.cat(mg), torch.cat(gts))
         out["metal_pixels_gt"] = int(torch.cat(mg).sum())
@@ -140,6 +141,10 @@ def _print_scores(rows: list[tuple[str, dict]]) -> None:
         per = " ".join("      -" if r["per_class"].get(c) is None else f"{r['per_class'][c]:7.3f}" for c in SEMANTIC_CLASSES)
         print(f"{name:<40} {r['miou']:6.3f} {r.get('miou_raw', float('nan')):6.3f} "
               f"{('-' if m is None else f'{m:.3f}'):>10}  {per}")
+        if r.get("per_class_raw") and r["per_class_raw"] != r["per_class"]:
+            raw = " ".join("      -" if r["per_class_raw"].get(c) is None else f"{r['per_class_raw'][c]:7.3f}"
+                           for c in SEMANTIC_CLASSES)
+            print(f"{'':<40} {'':6} {'(raw per class)':>17}  {raw}")
         if r.get("metal_pixels_gt") == 0 and r.get("metal_pixels_pred"):
             # IoU 0 here is only false positives: say so rather than let it read as metal that was missed
             print(f"{'':<40} (no true metal pixel in these views: metal IoU 0 counts the {r['metal_pixels_pred']} "
