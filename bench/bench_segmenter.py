@@ -87,7 +87,7 @@ def score(net, scene_path: Path, split: str = "test", scene_prior: bool = True) 
     (``miou_raw`` is the network's own argmax)."""
     import torch
 
-    from toolkit.scene import SEMANTIC_CLASSES, load_scene
+    from toolkit.scene import load_scene
     from toolkit.segment import SegmentConfig, apply_scene_prior, mean_iou, metal_iou, segment_images
 
     sc = load_scene(scene_path, split, upright="off")
@@ -107,13 +107,26 @@ def score(net, scene_path: Path, split: str = "test", scene_prior: bool = True) 
     miou_raw, per_raw = mean_iou(torch.cat(raw), torch.cat(gts))
     out = {"scene": str(scene_path), "split": split, "views": len(sc), "miou": miou, "miou_raw": miou_raw,
            "scene_prior": None if prior is None else [round(float(v), 5) for v in prior[0]],
-           "per_class": {c: (None if v != v else round(v, 4)) for c, v in zip(SEMANTIC_CLASSES, per)},
-           "per_class_raw": {c: (None if v != v else round(v, 4)) for c, v in zip(SEMANTIC_CLASSES, per_raw)}}
+           "per_class": _per_class(per), "per_class_raw": _per_class(per_raw)}
     if mg:
         out["metal_iou"] = metal_iou(torch.cat(mp), torch.cat(mg), torch.cat(gts))
         out["metal_pixels_gt"] = int(torch.cat(mg).sum())
         out["metal_pixels_pred"] = int(torch.cat(mp).sum())
     return out
+
+
+def _per_class(ious) -> dict:
+    """Per-class IoUs as a {class: IoU rounded to 4 places} dict, None for a class absent from both (NaN)."""
+    from toolkit.scene import SEMANTIC_CLASSES
+
+    return {c: (None if v != v else round(v, 4)) for c, v in zip(SEMANTIC_CLASSES, ious)}
+
+
+def _class_cells(per_class: dict) -> str:
+    """One 7-wide cell per class for the score table ('-' where the class is absent)."""
+    from toolkit.scene import SEMANTIC_CLASSES
+
+    return " ".join("      -" if per_class.get(c) is None else f"{per_class[c]:7.3f}" for c in SEMANTIC_CLASSES)
 
 
 def _mean_worst(rs: list[dict]) -> dict | None:
@@ -138,13 +151,10 @@ def _print_scores(rows: list[tuple[str, dict]]) -> None:
           + " ".join(f"{c[:7]:>7}" for c in SEMANTIC_CLASSES))
     for name, r in rows:
         m = r.get("metal_iou")
-        per = " ".join("      -" if r["per_class"].get(c) is None else f"{r['per_class'][c]:7.3f}" for c in SEMANTIC_CLASSES)
         print(f"{name:<40} {r['miou']:6.3f} {r.get('miou_raw', float('nan')):6.3f} "
-              f"{('-' if m is None else f'{m:.3f}'):>10}  {per}")
+              f"{('-' if m is None else f'{m:.3f}'):>10}  {_class_cells(r['per_class'])}")
         if r.get("per_class_raw") and r["per_class_raw"] != r["per_class"]:
-            raw = " ".join("      -" if r["per_class_raw"].get(c) is None else f"{r['per_class_raw'][c]:7.3f}"
-                           for c in SEMANTIC_CLASSES)
-            print(f"{'':<40} {'':6} {'(raw per class)':>17}  {raw}")
+            print(f"{'':<40} {'':6} {'(raw per class)':>17}  {_class_cells(r['per_class_raw'])}")
         if r.get("metal_pixels_gt") == 0 and r.get("metal_pixels_pred"):
             # IoU 0 here is only false positives: say so rather than let it read as metal that was missed
             print(f"{'':<40} (no true metal pixel in these views: metal IoU 0 counts the {r['metal_pixels_pred']} "
