@@ -283,9 +283,12 @@ def _assets_depth_and_preview(run_dir: Path, asset_dirs: dict[str, Path], thread
 
 
 def case_galleries(seeds: list[int], minutes: float, steps: int, threads: int, out_dir: Path, train_seed: int,
-                   extra: list[str]) -> dict:
+                   extra: list[str], export_only: bool = False, export_extra: list[str] | None = None) -> dict:
     """Every validation gallery (photos + poses only: no box, no labels, no ground-truth light): train, evaluate,
-    export the GLB, measure its depth error and its moderngl preview; print each gallery, the mean and the worst."""
+    export the GLB, measure its depth error and its moderngl preview; print each gallery, the mean and the worst.
+
+    ``export_only``: keep each gallery's run from an earlier call (its train row is read back from the run's
+    ``config.json``) and only export and score the GLB again, with ``export_extra`` added to ``dars export-asset``."""
     sys.path.insert(0, str(ROOT / "samples"))
     from galleries import ensure_gallery
 
@@ -298,14 +301,21 @@ def case_galleries(seeds: list[int], minutes: float, steps: int, threads: int, o
         run = out_dir / "galleries" / f"seed_{seed}" / "run"
         asset = run.parent / "asset"
         budget = ["--steps", str(steps)] if steps else ["--minutes", str(minutes)]
-        info = _train(str(scene), run, 0, "", threads, ["--seed", str(train_seed), *budget, *extra])
+        if export_only:
+            if not (run / "checkpoint.pt").is_file():
+                raise SystemExit(f"--export-only: {run} holds no trained run; run the galleries case without it first")
+            trained = json.loads((run / "config.json").read_text())
+            info = {"steps": trained.get("config", {}).get("steps"), "wall_s": None, "peak_rss_mb": None}
+        else:
+            info = _train(str(scene), run, 0, "", threads, ["--seed", str(train_seed), *budget, *extra])
         res = evaluate_run(load_run(run), "test", EvalConfig())
         m = res.metrics
         if asset.exists():
             import shutil
 
             shutil.rmtree(asset)
-        subprocess.run([PY, "-m", "toolkit.cli", "export-asset", str(run), "--out", str(asset), "--json"], check=True,
+        subprocess.run([PY, "-m", "toolkit.cli", "export-asset", str(run), "--out", str(asset), "--json",
+                        *(export_extra or [])], check=True,
                        cwd=ROOT, stdout=subprocess.DEVNULL, env={**os.environ, "OMP_NUM_THREADS": str(threads)})
         geo = _asset_depth_and_preview(run, asset, threads)
         rows[seed] = {"steps": info["steps"], "train_wall_s": info["wall_s"], "peak_rss_mb": info["peak_rss_mb"],
@@ -343,6 +353,9 @@ def main() -> int:
     ap.add_argument("--steps", type=int, default=0, help="galleries case: a step budget instead of --minutes")
     ap.add_argument("--seed", type=int, default=0, help="galleries case: training seed")
     ap.add_argument("--train-args", default="", help="galleries case: extra `dars train` arguments (quoted)")
+    ap.add_argument("--export-only", action="store_true",
+                    help="galleries case: keep the runs already in OUT/galleries and only export and score the GLBs")
+    ap.add_argument("--export-args", default="", help="galleries case: extra `dars export-asset` arguments (quoted)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=str(ROOT / "bench" / "out"))
     ap.add_argument("--variants", default="both", choices=["both", "full", "nerf"],
@@ -395,7 +408,7 @@ def main() -> int:
             else:
                 seeds = list(VALIDATION_SEEDS)[:int(args.galleries)]
             results[c] = case_galleries(seeds, args.minutes, args.steps, args.threads, out, args.seed,
-                                        args.train_args.split())
+                                        args.train_args.split(), args.export_only, args.export_args.split())
         elif c == "throughput":
             results[c] = case_throughput(args.threads, out)
     out.mkdir(parents=True, exist_ok=True)

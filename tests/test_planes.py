@@ -143,6 +143,12 @@ def test_build_mesh_flattens_onto_the_runs_room_box_and_says_why_when_it_cannot(
     np.testing.assert_array_equal(mesh.vertices[near, 1:], plain.vertices[near, 1:])
     np.testing.assert_array_equal(mesh.vertices[~near], plain.vertices[~near])  # the rest as it was
     assert mesh.num_faces == plain.num_faces and snap["movable"].startswith(f"{plain.num_vertices} of ")
+    small, stats = build_mesh(field, replace(cfg, faces=plain.num_faces // 4))  # simplified first, then flattened
+    assert stats["simplify"]["faces_out"] == small.num_faces < plain.num_faces
+    assert stats["snap_layout"]["movable"].startswith(f"{small.num_vertices} of {small.num_vertices} vertices")
+    near = np.abs(small.vertices[:, 0] - 0.52) < stats["snap_layout"]["tolerance_m"]
+    assert near.sum() == stats["snap_layout"]["vertices_moved"] > 0
+    assert np.abs(small.vertices[near, 0] - 0.52).max() < 1e-5
     exhibit, stats = build_mesh(field._replace(material_fn=_sphere().material_fn), cfg)  # every vertex 'base'
     np.testing.assert_array_equal(exhibit.vertices, plain.vertices)
     assert stats["snap_layout"]["movable"].startswith("0 of ") and stats["snap_layout"]["vertices_moved"] == 0
