@@ -287,8 +287,8 @@ def case_galleries(seeds: list[int], minutes: float, steps: int, threads: int, o
     """Every validation gallery (photos + poses only: no box, no labels, no ground-truth light): train, evaluate,
     export the GLB, measure its depth error and its moderngl preview; print each gallery, the mean and the worst.
 
-    ``export_only``: keep each gallery's run from an earlier call (its train row is read back from the run's
-    ``config.json``) and only export and score the GLB again, with ``export_extra`` added to ``dars export-asset``."""
+    ``export_only``: keep each gallery's run from an earlier call (its step count read back from the run) and only
+    export and score the GLB again, with ``export_extra`` added to ``dars export-asset``."""
     sys.path.insert(0, str(ROOT / "samples"))
     from galleries import ensure_gallery
 
@@ -300,15 +300,16 @@ def case_galleries(seeds: list[int], minutes: float, steps: int, threads: int, o
         scene = ensure_gallery(seed, "validation")
         run = out_dir / "galleries" / f"seed_{seed}" / "run"
         asset = run.parent / "asset"
-        budget = ["--steps", str(steps)] if steps else ["--minutes", str(minutes)]
         if export_only:
             if not (run / "checkpoint.pt").is_file():
                 raise SystemExit(f"--export-only: {run} holds no trained run; run the galleries case without it first")
-            trained = json.loads((run / "config.json").read_text())
-            info = {"steps": trained.get("config", {}).get("steps"), "wall_s": None, "peak_rss_mb": None}
         else:
+            budget = ["--steps", str(steps)] if steps else ["--minutes", str(minutes)]
             info = _train(str(scene), run, 0, "", threads, ["--seed", str(train_seed), *budget, *extra])
-        res = evaluate_run(load_run(run), "test", EvalConfig())
+        trained = load_run(run)
+        if export_only:  # the train row of the earlier call: its step count (wall time and memory not kept)
+            info = {"steps": trained.step, "wall_s": None, "peak_rss_mb": None}
+        res = evaluate_run(trained, "test", EvalConfig())
         m = res.metrics
         if asset.exists():
             import shutil
