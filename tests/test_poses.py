@@ -109,6 +109,27 @@ def test_upright_no_horizontal_plane_falls_back_to_cameras():
     assert estimate_world_up(c2w, wall_only, UprightConfig(use_plane=False)).source == "cameras"
 
 
+def test_upright_level_cameras_overrule_a_tilted_plane():
+    """Level cameras fix up to a fraction of a degree: a slab of points 4 deg off (on the validation galleries, a
+    band of wall and frame points at similar heights) is reported, not used; with rolled hand-held cameras the same
+    plane is within their spread and wins."""
+    rng = np.random.default_rng(3)
+    c2w = _rig(rng, tilt_deg=0.0)  # level: no roll, pitch only
+    tilt = _rot([1.0, 0.0, 0.0], 4.0)
+    slab = np.c_[rng.uniform(-3, 3, (800, 2)), 0.005 * rng.standard_normal(800)] @ tilt.T + [0, 0, 1.2]
+    pts = np.concatenate([_points(rng)[600:], slab])  # the wall and the object, and the tilted slab (no floor)
+    up = estimate_world_up(c2w, pts)
+    assert up.source == "cameras" and up.camera_roll_deg < 0.01 and up.plane_tolerance_deg == 1.5
+    assert abs(up.plane_angle_deg - 4.0) < 0.5 and np.degrees(np.arccos(up.up[2])) < 0.01
+    rolled = c2w.copy()
+    for m in rolled:
+        m[:3, :3] = m[:3, :3] @ _rot([0.0, 0.0, 1.0], rng.normal(0.0, 4.0))  # roll about the viewing axis
+    up = estimate_world_up(rolled, pts)
+    assert up.camera_roll_deg > 2.0 and up.plane_tolerance_deg > 4.5
+    assert up.source == "cameras+plane" and np.degrees(np.arccos(up.up @ tilt[:, 2])) < 0.5
+    assert np.isnan(estimate_world_up(c2w[:1].repeat(6, 0), pts).camera_roll_deg)  # one heading: cannot tell
+
+
 def test_rotation_between_and_similarity():
     for a, b in [([1, 2, 3], [0, 0, 1]), ([0, 0, -1], [0, 0, 1]), ([0, 0, 1], [0, 0, 1])]:
         R = rotation_between(a, b)

@@ -9,7 +9,8 @@ photograph in a museum are boxes (Manhattan world); on validation gallery 100000
 
 :func:`fit_room_layout` estimates the box:
 
-1. **Axes.** Up is :func:`toolkit.upright.estimate_world_up` (cameras and the sparse points' dominant plane). The
+1. **Axes.** Up is :func:`toolkit.upright.estimate_world_up` (cameras, and the sparse points' dominant plane where
+   it agrees with them: a few degrees of tilt put a 5 m room's walls and floor 10-20 cm off). The
    horizontal axes are the rotation about up whose coordinate histograms of the sparse points are sharpest
    (points on a wall share one coordinate), so the result does not depend on the input's frame.
 2. **Sweep.** Each of the six faces is moved, one at a time (coordinate descent: ``rounds`` coarse passes over
