@@ -445,6 +445,8 @@ _ARGS = [
                                                "-1"], ("--opacity-loss",)),
     ("train-depth-normal-negative", lambda c: ["train", c.w.scene, "--out", c.t / O, "--steps", 1, "--depth-normal",
                                                "-0.5"], ("--depth-normal",)),
+    ("train-orientation-negative", lambda c: ["train", c.w.scene, "--out", c.t / O, "--steps", 1, "--orientation",
+                                              "-0.1"], ("--orientation",)),
     ("train-sparse-depth-nan", lambda c: ["train", c.w.scene, "--out", c.t / O, "--steps", 1, "--sparse-depth", "nan"],
      ("--sparse-depth", "nan")),
     ("train-seed-negative", lambda c: ["train", c.w.scene, "--out", c.t / O, "--steps", 1, "--seed", "-1"],

@@ -197,14 +197,15 @@ def test_a_run_saved_before_the_layout_loss_existed_resumes_without_it():
 
 def test_layout_depth_option_trains_logs_and_is_recorded(sample_scene_path, tmp_path, capsys, monkeypatch):
     """`dars train --layout-depth W`: the box fitted from the photos, the term logged each step, the weight and the
-    box in config.json; --resume reuses the recorded box."""
+    box in config.json; --resume reuses the recorded box. `--orientation W` is recorded the same way."""
     from toolkit.cli import main
 
     run = tmp_path / "l"
     assert main(["train", str(sample_scene_path), "--out", str(run), "--steps", "3", "--batch-rays", "256",
-                 "--quiet", "--no-auto-priors", "--layout-depth", "0.1"]) == 0
+                 "--quiet", "--no-auto-priors", "--layout-depth", "0.1", "--orientation", "0.3"]) == 0
     meta = json.load(open(run / "config.json"))
     assert meta["config"]["losses"]["layout_depth"] == 0.1
+    assert meta["config"]["losses"]["orientation"] == 0.3  # --orientation (a room's default 1.0)
     faces = meta["room_layout"]["faces"]
     assert set(faces) == set(FACE_NAMES) and any(f["confident"] for f in faces.values())
     rows = [json.loads(line) for line in open(run / "log.jsonl")]

@@ -381,21 +381,23 @@ def test_scene_type_auto_unbounded_for_the_gallery_object_for_lego(sample_scene_
 
 
 def test_room_geometry_losses_follow_the_scene_type(sample_scene_path):
-    """Weights left None become ROOM_LOSSES for a room and 0 for an object; a weight the user set is kept; the
-    NeRF baseline has none of them."""
+    """Weights left None become ROOM_LOSSES for a room and OBJECT_LOSSES or 0 for an object (the orientation loss:
+    1.0 in a room, 0.1 on an object); a weight the user set is kept; the NeRF baseline has none of them."""
     import dataclasses
 
     from toolkit.train import resolve_config
-    from toolkit.train.config import ROOM_LOSSES
+    from toolkit.train.config import OBJECT_LOSSES, ROOM_LOSSES
 
     scene = load_scene(sample_scene_path, "train")
     keys = tuple(ROOM_LOSSES)
-    assert set(keys) == {"sparse_depth", "opacity", "depth_normal", "layout_depth"}
+    assert set(keys) == {"sparse_depth", "opacity", "depth_normal", "layout_depth", "orientation"}
+    assert make_config("fast", steps=1).losses.orientation is None and OBJECT_LOSSES == {"orientation": 0.1}
     assert all(v > 0 for v in ROOM_LOSSES.values())
     room, _ = resolve_config(make_config("fast", steps=1), scene)
     assert {k: getattr(room.losses, k) for k in keys} == ROOM_LOSSES
     obj, _ = resolve_config(make_config("fast", steps=1, scene_type="object"), scene)
-    assert all(getattr(obj.losses, k) == 0.0 for k in keys)
+    assert all(getattr(obj.losses, k) == OBJECT_LOSSES.get(k, 0.0) for k in keys)
+    assert (room.losses.orientation, obj.losses.orientation) == (1.0, 0.1)
     cfg = make_config("fast", steps=1)
     cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, depth_normal=0.0, opacity=0.3))
     mixed, _ = resolve_config(cfg, scene)

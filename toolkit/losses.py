@@ -62,8 +62,9 @@ class LossWeights:
     eikonal: float = 0.01
     eikonal_start: int = 2000
     """Step after which L_eikonal is active (Table 1: 2000)."""
-    orientation: float = 0.1
-    """Ours (Ref-NeRF's orientation loss): penalises normals that face away from the camera."""
+    orientation: float | None = None
+    """Ours (Ref-NeRF's orientation loss): penalises normals that face away from the camera. None = by scene type:
+    1.0 for a room (``toolkit.train.config.ROOM_LOSSES``), 0.1 for an object (``OBJECT_LOSSES``)."""
     distortion: float = 0.3
     semantic: float = 0.1
     light_reg: float = 0.01

@@ -74,6 +74,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--depth-normal", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the depth-normal loss: the rendered normal follows the normal of the rendered "
                         "depth map (default: 0.5 for a room, 0 for an object; 0 = off)")
+    q.add_argument("--orientation", type=NONNEGATIVE, default=None, metavar="W",
+                   help="weight of the orientation loss (Ref-NeRF): normals may not face away from the camera "
+                        "(default: 1.0 for a room, 0.1 for an object; 0 = off)")
     q.add_argument("--planar-loss", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the planarity loss: the rendered points of each large textureless region of a "
                         "photo (plain walls, floors) lie on one plane (default: 0 = off; README, \"A planarity prior for "
@@ -144,8 +147,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 _LOSS_OPTIONS = (("opacity-loss", "opacity_loss", "opacity"), ("sparse-depth", "sparse_depth", "sparse_depth"),
                  ("depth-normal", "depth_normal", "depth_normal"), ("planar-loss", "planar_loss", "planar"),
-                 ("layout-depth", "layout_depth", "layout_depth"))
-"""Loss-weight options of ``dars train``: (flag, argparse attribute, ``LossWeights`` field); None = by scene type."""
+                 ("layout-depth", "layout_depth", "layout_depth"), ("orientation", "orientation", "orientation"))
+"""Loss-weight options of ``dars train``: (flag, argparse attribute, ``LossWeights`` field); None = the default (by scene type for the room losses)."""
 
 _RESUME_OPTIONS = (
     # (option, args attribute, the saved value of a run (config.json as a dict), the value asked for)

@@ -21,7 +21,7 @@ from ..losses import LossWeights
 from ..sampling import SamplerConfig
 from ..scene import Scene, photos_have_transparency
 
-__all__ = ["TrainConfig", "PRESETS", "make_config", "resolve_config", "resolve_scene_box", "SHELL_FADE", "ROOM_LOSSES",
+__all__ = ["TrainConfig", "PRESETS", "make_config", "resolve_config", "resolve_scene_box", "SHELL_FADE", "ROOM_LOSSES", "OBJECT_LOSSES",
            "photos_have_transparency"]
 
 
@@ -255,11 +255,15 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
     return replace(cfg, **overrides)
 
 
-ROOM_LOSSES = {"sparse_depth": 0.1, "opacity": 0.1, "depth_normal": 0.5, "layout_depth": 0.1}
+ROOM_LOSSES = {"sparse_depth": 0.1, "opacity": 0.1, "depth_normal": 0.5, "layout_depth": 0.1, "orientation": 1.0}
 """Loss weights that :func:`resolve_config` gives a room (``unbounded``) where the config leaves them None: the
-geometry terms measured on the validation galleries (README, "Geometry of a room" and "A room box from the
-photos"). An object on a transparent background gets 0 for each (the opacity loss would fill its background; the
-others are not measured there)."""
+geometry terms measured on the validation galleries (README, "Geometry of a room", "A room box from the photos" and
+"Normals that face the camera"). An object on a transparent background gets :data:`OBJECT_LOSSES`' weight where it
+has one, else 0 (the opacity loss would fill its background; the others are not measured there)."""
+
+OBJECT_LOSSES = {"orientation": 0.1}
+"""Loss weights left None that an object gets (not 0): the orientation loss at Ref-NeRF's weight, as before rooms
+had their own."""
 
 SHELL_FADE = 0.1
 """Fraction of the run over which the (legacy, bounded-only) room prior's layer fades in, after stage (a)."""
@@ -294,7 +298,7 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
 
     * ``scene_type`` (``auto`` → ``unbounded`` or ``object``) and with it the field's contraction;
     * ``deferred`` left None: True (shading once per ray) for an unbounded scene, False for an object;
-    * the loss weights left None (:data:`ROOM_LOSSES` for a room, 0 for an object);
+    * the loss weights left None (:data:`ROOM_LOSSES` for a room, :data:`OBJECT_LOSSES` or 0 for an object);
     * the scene box (:func:`resolve_scene_box`);
     * with ``auto_resolution`` the hash grid's finest level resolves a quarter of the pixel footprint at the median
       camera distance — ``next_pow2(4 · box extent / footprint)`` (twice that with contraction: the box spans half
@@ -312,7 +316,8 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
         if log is not None:
             log("[dars] shading: " + ("once per ray (a room; --shade samples to shade every sample)" if cfg.deferred
                                       else "at every sample (an object; --shade rays to shade once per ray)"))
-    auto = {k: (v if kind == "unbounded" else 0.0) for k, v in ROOM_LOSSES.items() if getattr(cfg.losses, k) is None}
+    auto = {k: (v if kind == "unbounded" else OBJECT_LOSSES.get(k, 0.0)) for k, v in ROOM_LOSSES.items()
+            if getattr(cfg.losses, k) is None}
     if auto:
         cfg = replace(cfg, losses=replace(cfg.losses, **auto))
         if log is not None and kind == "unbounded":

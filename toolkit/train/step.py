@@ -455,7 +455,7 @@ def train_step(state: TrainState, data: TrainData) -> dict:
             else:
                 n_pred = state.field(out.sample_points[sel].detach(), shading="none").normal
             terms["eikonal"] = normal_consistency_loss(n_pred, grad, out.weights[sel])
-    if cfg.shading == "pbr" and lw.orientation > 0 and out.weights.numel():
+    if cfg.shading == "pbr" and (lw.orientation or 0.0) > 0 and out.weights.numel():
         if out.sample_normals is not None:
             terms["orientation"] = orientation_loss(out.sample_normals, batch.rays.directions[out.sample_ray_indices],
                                                     out.weights)
