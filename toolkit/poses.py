@@ -850,10 +850,12 @@ def _pose_pipeline(pycolmap, photos_dir: Path, out_dir: Path, names: list[str], 
         up = estimate_world_up(c2w, xyz[good] if good.sum() >= 3 else None, cfg.upright_cfg)
         transform[:3, :3] = rotation_between(up.up, [0.0, 0.0, 1.0])
         up_from = up.source
-        plane = (f"; floor/plane normal {up.plane_angle_deg:.1f} deg from the camera up, {100 * up.plane_fraction:.0f} % "
-                 "of the points" + ("" if up.source == "cameras+plane" else
-                                    f", not used: level cameras allow {up.plane_tolerance_deg:.1f} deg")
-                 if up.plane_normal is not None else "")
+        plane = ""
+        if up.plane_normal is not None:
+            plane = (f"; floor/plane normal {up.plane_angle_deg:.1f} deg from the camera up, "
+                     f"{100 * up.plane_fraction:.0f} % of the points")
+            if up.source != "cameras+plane":
+                plane += f", not used: level cameras allow {up.plane_tolerance_deg:.1f} deg"
         log(f"upright: world up from {up.source} ({up.camera_inliers}/{len(c2w)} cameras agree{plane})")
     c2w_out = transform[None] @ c2w
     xyz_out = xyz @ transform[:3, :3].T + transform[:3, 3]

@@ -23,7 +23,7 @@ up direction in three steps:
    near 0) fix up to a fraction of a degree, and a "plane" several degrees off is not horizontal: on the
    procedural validation galleries (few hundred sparse points), RANSAC's largest slab was a band of wall and frame
    points at similar heights, 3.4 and 4.2 deg off the (exact) camera up, and the room box fitted in that frame
-   put the walls 10-14 cm and the floor 23 cm from the truth. Where the x axes do not span the horizontal plane
+   put walls up to 15 cm and the floor and ceiling up to 18 cm from the truth (README, "Up from level cameras"). Where the x axes do not span the horizontal plane
    (a forward-facing capture) the cameras cannot fix the pitch, and the plane is used whenever it is found.
    A rejected plane is still reported (``plane_normal``, ``plane_angle_deg``; ``source`` stays ``cameras``).
 

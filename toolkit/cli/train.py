@@ -148,7 +148,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 _LOSS_OPTIONS = (("opacity-loss", "opacity_loss", "opacity"), ("sparse-depth", "sparse_depth", "sparse_depth"),
                  ("depth-normal", "depth_normal", "depth_normal"), ("planar-loss", "planar_loss", "planar"),
                  ("layout-depth", "layout_depth", "layout_depth"), ("orientation", "orientation", "orientation"))
-"""Loss-weight options of ``dars train``: (flag, argparse attribute, ``LossWeights`` field); None = the default (by scene type for the room losses)."""
+"""Loss-weight options of ``dars train``: (flag, argparse attribute, ``LossWeights`` field); None = by scene type."""
 
 _RESUME_OPTIONS = (
     # (option, args attribute, the saved value of a run (config.json as a dict), the value asked for)

@@ -21,8 +21,8 @@ from ..losses import LossWeights
 from ..sampling import SamplerConfig
 from ..scene import Scene, photos_have_transparency
 
-__all__ = ["TrainConfig", "PRESETS", "make_config", "resolve_config", "resolve_scene_box", "SHELL_FADE", "ROOM_LOSSES", "OBJECT_LOSSES",
-           "photos_have_transparency"]
+__all__ = ["TrainConfig", "PRESETS", "make_config", "resolve_config", "resolve_scene_box", "SHELL_FADE", "ROOM_LOSSES",
+           "OBJECT_LOSSES", "photos_have_transparency"]
 
 
 @dataclass(frozen=True)
