@@ -1,7 +1,8 @@
 """How well is the *level* of the room's light known from photos? Band 0 of the SH light (its brightness and colour)
 sets the albedo's scale: photos fix albedo and light only up to a common factor per channel, so a light estimated
 2x too dim gives an albedo 2x too bright. This benchmark scores three estimates of band 0 against the ground truth on
-rendered galleries, per gallery and as mean / median / worst of ``|log(estimate / truth)|`` (mean over channels):
+rendered galleries, per gallery and as mean / median / worst of ``|log(estimate / truth)|`` (mean over channels;
+the network's signed ratio too, which tells a level that is low everywhere from one that scatters):
 
 * ``net``: the shipped light network (``toolkit/weights/lightnet_small.pt``), mean over the training views, as
   ``dars priors light`` computes it;
@@ -99,6 +100,11 @@ def log_error(est: np.ndarray, truth: np.ndarray) -> float:
     return float(np.abs(np.log(np.maximum(est, 1e-3) / np.maximum(truth, 1e-3))).mean())
 
 
+def signed_log_ratio(est: np.ndarray, truth: np.ndarray) -> float:
+    """mean over channels of log(estimate / truth): < 0 where the estimate is dimmer than the truth."""
+    return float(np.log(np.maximum(est, 1e-3) / np.maximum(truth, 1e-3)).mean())
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("galleries", nargs="*", help="rendered gallery folders (transforms_train.json with 'sh'); "
@@ -141,6 +147,12 @@ def main() -> int:
         print(f"{k:24s} {e.mean():27.3f} {np.median(e):7.3f} {e.max():6.3f}")
     ref = summary["grey"]["mean"]
     print(f"ratio net / grey (mean): {summary['net']['mean'] / ref:.3f}")
+    # the signed error: a level that is low everywhere (a bias) reads the same in |log| as one that scatters
+    bias = np.array([signed_log_ratio(r["net"], r["truth"]) for r in rows])
+    summary["net_log_ratio"] = {"mean": float(bias.mean()), "median": float(np.median(bias)),
+                                "below_truth": int((bias < 0).sum())}
+    print(f"net band 0 / truth: exp(mean log) {np.exp(bias.mean()):.2f}x, exp(median log) "
+          f"{np.exp(np.median(bias)):.2f}x; below the truth on {int((bias < 0).sum())} of {len(rows)} galleries")
     keys = list(rows[0]["env_l2"])
     print(f"\n{'whole light, Env-light L2 (eq. 36)':40s} " + " ".join(f"{k:>10s}" for k in keys))
     for r in rows:

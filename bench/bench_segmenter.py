@@ -15,6 +15,8 @@ Usage (2 threads; ~25 min on 2 CPU cores)::
     .venv/bin/python samples/galleries.py --profile prior --seeds 0-159
     .venv/bin/python samples/galleries.py --profile validation --seeds 1000000,1000001
     .venv/bin/python bench/bench_segmenter.py --save toolkit/weights/segmenter_small.pt
+    # more rooms for training only (the light profile's 64 px galleries, resized; tried 2026-12-05, not better):
+    .venv/bin/python bench/bench_segmenter.py --steps 8000 --extra-dir ~/.cache/dars/galleries/light --save /tmp/seg.pt
 """
 
 from __future__ import annotations
@@ -58,6 +60,17 @@ def load_labelled(dirs: list[Path], splits=("train", "test"), progress: bool = T
                             else torch.zeros_like(labs[-1], dtype=torch.bool))
                 src.append(f"{d.name}:{split}:{i}")
     return torch.stack(imgs), torch.stack(labs), torch.stack(mets), src
+
+
+def _resize_to(x, size, nearest: bool):
+    """Images float [N, 3, h, w] (bilinear) or labels / masks [N, h, w] (nearest) to ``size`` (H, W)."""
+    import torch.nn.functional as F
+
+    if tuple(x.shape[-2:]) == tuple(size):
+        return x
+    if nearest:
+        return F.interpolate(x[:, None].float(), size=tuple(size), mode="nearest")[:, 0].to(x.dtype)
+    return F.interpolate(x, size=tuple(size), mode="bilinear", align_corners=False).clamp(0.0, 1.0)
 
 
 def scene_prior_of(net, scene_path: Path, split: str = "train"):
@@ -190,6 +203,9 @@ def main(argv=None) -> int:
     ap.add_argument("--prior-dir", type=Path, default=CACHE / "prior", help="prior-profile galleries (training data)")
     ap.add_argument("--max-galleries", type=int, default=0, help="use at most this many (0: all rendered)")
     ap.add_argument("--holdout", type=int, default=8, help="last N prior galleries kept out of training and scored")
+    ap.add_argument("--extra-dir", type=Path, nargs="*", default=[],
+                    help="more labelled galleries for training only (e.g. the light profile's 64 px rooms: "
+                         "CACHE/light), resized to the prior views' size; never scored")
     ap.add_argument("--validation", type=Path, nargs="*",
                     default=sorted((CACHE / "validation").glob("seed_*")), help="validation galleries to score")
     ap.add_argument("--sample", type=Path, default=REPO / "samples" / "gallery")
@@ -226,8 +242,14 @@ def main(argv=None) -> int:
     train_dirs, held_dirs = dirs[:len(dirs) - args.holdout], dirs[len(dirs) - args.holdout:]
     t0 = time.time()
     imgs, labs, mets, _ = load_labelled(train_dirs)
-    print(f"training data: {len(train_dirs)} galleries, {imgs.shape[0]} views of {imgs.shape[-1]}x{imgs.shape[-2]} "
-          f"({time.time() - t0:.0f} s to load); metal pixels {mets.float().mean() * 100:.2f} %", flush=True)
+    extra_dirs = [d for root in args.extra_dir for d in _gallery_dirs(root)]
+    if extra_dirs:  # smaller renders (the light profile's 64 px): brought to the prior views' size
+        e_imgs, e_labs, e_mets, _ = load_labelled(extra_dirs)
+        imgs, labs, mets = (torch.cat([a, _resize_to(b, a.shape[-2:], nearest)]) for a, b, nearest in
+                            ((imgs, e_imgs, False), (labs, e_labs, True), (mets, e_mets, True)))
+    print(f"training data: {len(train_dirs)} + {len(extra_dirs)} galleries, {imgs.shape[0]} views of "
+          f"{imgs.shape[-1]}x{imgs.shape[-2]} ({time.time() - t0:.0f} s to load); metal pixels "
+          f"{mets.float().mean() * 100:.2f} %", flush=True)
     widths = tuple(int(w) for w in args.widths.split(","))
     arch = SegmenterConfig(widths=widths, groups=4, metal=True, work_size=args.work_size)
     net = load_segmenter(args.init) if args.init else Segmenter(arch)
@@ -257,6 +279,7 @@ def main(argv=None) -> int:
         card = {
             "command": "bench/bench_segmenter.py " + " ".join(argv if argv is not None else sys.argv[1:]),
             "data": {"train_galleries": [d.name for d in train_dirs], "profile": "prior",
+                     "extra_galleries": [f"{d.parent.name}/{d.name}" for d in extra_dirs],
                      "render_command": "samples/galleries.py --profile prior --seeds 0-159",
                      "views": n_views,
                      "heldout_prior_galleries": [d.name for d in held_dirs],

@@ -21,3 +21,20 @@ def test_a_zero_metal_iou_without_true_metal_is_called_false_positives(capsys):
     out = capsys.readouterr().out
     assert "no true metal pixel in these views: metal IoU 0 counts the 1234 pixels predicted metal" in out
     assert out.count("no true metal pixel") == 1
+
+
+def test_extra_rooms_are_brought_to_the_prior_views_size():
+    """--extra-dir rooms (64 px) join the 160 px prior views: images bilinear in [0, 1], labels and masks nearest
+    (the ignore id 255 and the class ids survive unchanged, no blended ids)."""
+    import torch
+
+    img = torch.rand(2, 3, 4, 4)
+    lab = torch.tensor([[0, 1], [255, 6]]).repeat_interleave(2, 0).repeat_interleave(2, 1)[None].expand(2, 4, 4)
+    met = lab == 6
+    out_img = bs._resize_to(img, (10, 10), nearest=False)
+    out_lab = bs._resize_to(lab, (10, 10), nearest=True)
+    out_met = bs._resize_to(met, (10, 10), nearest=True)
+    assert out_img.shape == (2, 3, 10, 10) and 0.0 <= float(out_img.min()) and float(out_img.max()) <= 1.0
+    assert out_lab.dtype == lab.dtype and set(out_lab.unique().tolist()) == {0, 1, 6, 255}
+    assert out_met.dtype == torch.bool and bool((out_met == (out_lab == 6)).all())
+    assert bs._resize_to(img, (4, 4), nearest=False) is img
