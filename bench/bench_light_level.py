@@ -96,13 +96,18 @@ def gallery_levels(path: str, model, yaws: list[float] = ()) -> dict | None:
     return row
 
 
+def _log_ratios(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Per channel log(estimate / truth), both floored at 1e-3."""
+    return np.log(np.maximum(est, 1e-3) / np.maximum(truth, 1e-3))
+
+
 def log_error(est: np.ndarray, truth: np.ndarray) -> float:
-    return float(np.abs(np.log(np.maximum(est, 1e-3) / np.maximum(truth, 1e-3))).mean())
+    return float(np.abs(_log_ratios(est, truth)).mean())
 
 
 def signed_log_ratio(est: np.ndarray, truth: np.ndarray) -> float:
     """mean over channels of log(estimate / truth): < 0 where the estimate is dimmer than the truth."""
-    return float(np.log(np.maximum(est, 1e-3) / np.maximum(truth, 1e-3)).mean())
+    return float(_log_ratios(est, truth).mean())
 
 
 def main() -> int:

@@ -23,8 +23,9 @@ up direction in three steps:
    near 0) fix up to a fraction of a degree, and a "plane" several degrees off is not horizontal: on the
    procedural validation galleries (few hundred sparse points), RANSAC's largest slab was a band of wall and frame
    points at similar heights, 3.4 and 4.2 deg off the (exact) camera up, and the room box fitted in that frame
-   put walls up to 15 cm and the floor and ceiling up to 18 cm from the truth (README, "Up from level cameras"). Where the x axes do not span the horizontal plane
-   (a forward-facing capture) the cameras cannot fix the pitch, and the plane is used whenever it is found.
+   put walls up to 15 cm and the floor and ceiling up to 18 cm from the truth (README, "Up from level cameras").
+   Where the x axes do not span the horizontal plane (a forward-facing capture) the cameras cannot fix the pitch,
+   and the plane is used whenever it is found.
    A rejected plane is still reported (``plane_normal``, ``plane_angle_deg``; ``source`` stays ``cameras``).
 
 :func:`upright_rotation` returns the smallest rotation taking that up to +z (the heading about z is left as it
