@@ -15,6 +15,9 @@ Usage (2 threads; ~25 min on 2 CPU cores)::
     .venv/bin/python samples/galleries.py --profile prior --seeds 0-159
     .venv/bin/python samples/galleries.py --profile validation --seeds 1000000,1000001
     .venv/bin/python bench/bench_segmenter.py --save toolkit/weights/segmenter_small.pt
+    # 203 prior galleries, the 16 the shipped one never saw held out to compare on (tried 2026-12-05, not better):
+    .venv/bin/python samples/galleries.py --profile prior --seeds 117-199,232-263
+    .venv/bin/python bench/bench_segmenter.py --steps 8000 --holdout-seeds 109-116,224-231 --save /tmp/seg_203.pt
     # more rooms for training only (the light profile's 64 px galleries, resized; tried 2026-12-05, not better):
     .venv/bin/python bench/bench_segmenter.py --steps 8000 --extra-dir ~/.cache/dars/galleries/light --save /tmp/seg.pt
 """
@@ -39,6 +42,40 @@ CACHE = cache_root()
 def _gallery_dirs(root: Path) -> list[Path]:
     dirs = [d for d in root.glob("seed_*") if (d / "stamp.json").is_file()]
     return sorted(dirs, key=lambda d: int(d.name.split("_")[1]))
+
+
+def _seed_of(d: Path) -> int:
+    return int(d.name.split("_")[1])
+
+
+def split_holdout(dirs: list[Path], holdout: int, holdout_seeds: str = "") -> tuple[list[Path], list[Path]]:
+    """(training, held-out) galleries: the seeds of ``holdout_seeds`` (``A-B,C``) held out where given, else the
+    last ``holdout``. A held-out seed that is not rendered is an error (the comparison it was asked for would
+    silently shrink)."""
+    from galleries import parse_seeds
+
+    if not holdout_seeds:
+        return dirs[:len(dirs) - holdout], dirs[len(dirs) - holdout:]
+    want = set(parse_seeds(holdout_seeds, "prior"))
+    missing = sorted(want - {_seed_of(d) for d in dirs})
+    if missing:
+        raise SystemExit(f"--holdout-seeds: prior galleries {seed_ranges(missing)} are not rendered in "
+                         f"{dirs[0].parent if dirs else 'the prior directory'}; render them with "
+                         f"`python samples/galleries.py --profile prior --seeds {seed_ranges(missing)}`")
+    return [d for d in dirs if _seed_of(d) not in want], [d for d in dirs if _seed_of(d) in want]
+
+
+def seed_ranges(seeds: list[int]) -> str:
+    """Sorted seeds as ``A-B,C`` ranges (what ``--seeds`` reads back)."""
+    out, seeds = [], sorted(set(seeds))
+    i = 0
+    while i < len(seeds):
+        j = i
+        while j + 1 < len(seeds) and seeds[j + 1] == seeds[j] + 1:
+            j += 1
+        out.append(str(seeds[i]) if i == j else f"{seeds[i]}-{seeds[j]}")
+        i = j + 1
+    return ",".join(out)
 
 
 def load_labelled(dirs: list[Path], splits=("train", "test"), progress: bool = True):
@@ -203,6 +240,9 @@ def main(argv=None) -> int:
     ap.add_argument("--prior-dir", type=Path, default=CACHE / "prior", help="prior-profile galleries (training data)")
     ap.add_argument("--max-galleries", type=int, default=0, help="use at most this many (0: all rendered)")
     ap.add_argument("--holdout", type=int, default=8, help="last N prior galleries kept out of training and scored")
+    ap.add_argument("--holdout-seeds", default="", metavar="A-B,C",
+                    help="these prior seeds are kept out of training and scored instead of the last --holdout "
+                         "(e.g. the galleries an earlier segmenter was scored on, to compare the two on them)")
     ap.add_argument("--extra-dir", type=Path, nargs="*", default=[],
                     help="more labelled galleries for training only (e.g. the light profile's 64 px rooms: "
                          "CACHE/light), resized to the prior views' size; never scored")
@@ -239,7 +279,7 @@ def main(argv=None) -> int:
         print(f"need more than {args.holdout} rendered galleries in {args.prior_dir}, found {len(dirs)}; render them "
               "with `python samples/galleries.py --profile prior --seeds 0-159`", file=sys.stderr)
         return 2
-    train_dirs, held_dirs = dirs[:len(dirs) - args.holdout], dirs[len(dirs) - args.holdout:]
+    train_dirs, held_dirs = split_holdout(dirs, args.holdout, args.holdout_seeds)
     t0 = time.time()
     imgs, labs, mets, _ = load_labelled(train_dirs)
     extra_dirs = [d for root in args.extra_dir for d in _gallery_dirs(root)]
@@ -280,7 +320,8 @@ def main(argv=None) -> int:
             "command": "bench/bench_segmenter.py " + " ".join(argv if argv is not None else sys.argv[1:]),
             "data": {"train_galleries": [d.name for d in train_dirs], "profile": "prior",
                      "extra_galleries": [f"{d.parent.name}/{d.name}" for d in extra_dirs],
-                     "render_command": "samples/galleries.py --profile prior --seeds 0-159",
+                     "render_command": "samples/galleries.py --profile prior --seeds "
+                                       + seed_ranges([_seed_of(d) for d in train_dirs + held_dirs]),
                      "views": n_views,
                      "heldout_prior_galleries": [d.name for d in held_dirs],
                      "validation_galleries": [Path(r["scene"]).name for r in scores["validation"]],

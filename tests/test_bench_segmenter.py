@@ -38,3 +38,19 @@ def test_extra_rooms_are_brought_to_the_prior_views_size():
     assert out_lab.dtype == lab.dtype and set(out_lab.unique().tolist()) == {0, 1, 6, 255}
     assert out_met.dtype == torch.bool and bool((out_met == (out_lab == 6)).all())
     assert bs._resize_to(img, (4, 4), nearest=False) is img
+
+
+def test_holdout_seeds_pick_the_held_out_galleries(tmp_path):
+    """--holdout-seeds holds exactly those seeds out (wherever they sort), the card's seed list reads back as ranges,
+    and a held-out seed that is not rendered stops with the command that renders it."""
+    import pytest
+
+    dirs = [tmp_path / f"seed_{s}" for s in (0, 1, 2, 5, 6, 9, 10)]
+    train, held = bs.split_holdout(dirs, 8, "1-2,9")
+    assert [d.name for d in held] == ["seed_1", "seed_2", "seed_9"]
+    assert [d.name for d in train] == ["seed_0", "seed_5", "seed_6", "seed_10"]
+    train, held = bs.split_holdout(dirs, 2)
+    assert [d.name for d in held] == ["seed_9", "seed_10"] and len(train) == 5
+    assert bs.seed_ranges([10, 0, 1, 2, 5, 6, 9]) == "0-2,5-6,9-10"
+    with pytest.raises(SystemExit, match="--seeds 3-4"):
+        bs.split_holdout(dirs, 8, "2-4")
