@@ -15,9 +15,12 @@ Usage (2 threads; ~25 min on 2 CPU cores)::
     .venv/bin/python samples/galleries.py --profile prior --seeds 0-159
     .venv/bin/python samples/galleries.py --profile validation --seeds 1000000,1000001
     .venv/bin/python bench/bench_segmenter.py --save toolkit/weights/segmenter_small.pt
-    # 203 prior galleries, the 16 the shipped one never saw held out to compare on (tried 2026-12-05, not better):
+    # the shipped weights (2026-12-05): 203 prior galleries, the 16 the earlier network never saw held out to
+    # compare on; 8000 steps (alone: not better than the earlier network), then 8000 more from those weights
     .venv/bin/python samples/galleries.py --profile prior --seeds 117-199,232-263
     .venv/bin/python bench/bench_segmenter.py --steps 8000 --holdout-seeds 109-116,224-231 --save /tmp/seg_203.pt
+    .venv/bin/python bench/bench_segmenter.py --steps 8000 --holdout-seeds 109-116,224-231 --seed 1 \
+        --init /tmp/seg_203.pt --save toolkit/weights/segmenter_small.pt
     # more rooms for training only (the light profile's 64 px galleries, resized; tried 2026-12-05, not better):
     .venv/bin/python bench/bench_segmenter.py --steps 8000 --extra-dir ~/.cache/dars/galleries/light --save /tmp/seg.pt
 """
@@ -39,13 +42,14 @@ from galleries import cache_root  # noqa: E402  (where samples/galleries.py rend
 CACHE = cache_root()
 
 
+def _seed_of(d: Path) -> int:
+    """The seed of a gallery folder ``seed_<N>``."""
+    return int(d.name.split("_")[1])
+
+
 def _gallery_dirs(root: Path) -> list[Path]:
     dirs = [d for d in root.glob("seed_*") if (d / "stamp.json").is_file()]
-    return sorted(dirs, key=lambda d: int(d.name.split("_")[1]))
-
-
-def _seed_of(d: Path) -> int:
-    return int(d.name.split("_")[1])
+    return sorted(dirs, key=_seed_of)
 
 
 def split_holdout(dirs: list[Path], holdout: int, holdout_seeds: str = "") -> tuple[list[Path], list[Path]]:
