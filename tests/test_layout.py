@@ -11,7 +11,8 @@ import torch
 
 from toolkit._checks import ConfigError
 from toolkit.cameras import Cameras, generate_rays
-from toolkit.layout import FACE_NAMES, LayoutConfig, RoomLayout, box_depth, fit_room_layout, layout_depth_targets
+from toolkit.layout import (FACE_NAMES, LayoutConfig, RoomLayout, box_depth, fit_room_layout, layout_depth_targets,
+                            line_yaw)
 from toolkit.pinhole import look_at
 
 YAW = math.radians(20.0)  # the room is not aligned with the world axes
@@ -137,6 +138,39 @@ def test_a_glossy_walls_reflections_do_not_draw_it_behind_itself():
     assert lay.band[wall] == "high-pass" and lay.band.count("high-pass") == 1, lay.band  # the others: colour
 
 
+def _yaw_error(axes: np.ndarray) -> float:
+    """Degrees between the fitted horizontal axes and the room's (modulo 90°)."""
+    a = math.degrees(math.atan2(axes[0][1], axes[0][0])) - math.degrees(YAW)
+    return abs((a + 45.0) % 90.0 - 45.0)
+
+
+def test_line_yaw_reads_the_rooms_turn_from_its_edges():
+    room = _BoxRoom()
+    angle, peak, segments = line_yaw(room, np.array([0.0, 0.0, 1.0]))
+    assert segments >= 20 and peak > LayoutConfig().min_line_peak, (segments, peak)
+    assert abs(angle - 20.0) < 0.5, angle  # in [-45, 45): the turn nearest the frame's axes
+    # featureless photos have no edges: nothing votes
+    angle, peak, segments = line_yaw(_BoxRoom(n=4, plain=True), np.array([0.0, 0.0, 1.0]))
+    assert segments == 0 and not math.isfinite(angle) and peak == 0.0
+
+
+def test_the_edges_set_the_yaw_where_the_points_would_not():
+    room = _BoxRoom()
+    # sparse points that say nothing about the walls (a blob in the middle of the room): their sharpest histograms
+    # fall at any turn
+    blob = np.random.default_rng(3).normal(size=(200, 3)) * 0.4 + np.array([0.5, 0.2, 1.3])
+    by_points = fit_room_layout(room, blob, LayoutConfig(max_side=64, max_views=16, yaw_from="points"))
+    by_lines = fit_room_layout(room, blob, CFG)
+    assert by_points.yaw == "points" and by_lines.yaw == "lines"
+    assert _yaw_error(by_lines.axes) < 0.5, _yaw_error(by_lines.axes)
+    assert _yaw_error(by_points.axes) > 2.0, _yaw_error(by_points.axes)  # what the edges fixed
+    assert (_face_errors(by_lines)[:5] < 0.12).all(), _face_errors(by_lines).round(3)
+    assert RoomLayout.from_json(json.loads(json.dumps(by_lines.to_json()))).yaw == "lines"
+    # no clear peak (a threshold no histogram reaches): the points decide, and the box says so
+    fallback = fit_room_layout(room, blob, LayoutConfig(max_side=64, max_views=16, min_line_peak=1e9))
+    assert fallback.yaw == "points" and np.allclose(fallback.axes, by_points.axes)
+
+
 def test_featureless_walls_give_no_face_and_no_target():
     room = _BoxRoom(plain=True)
     lay = fit_room_layout(room, room.points, CFG)
@@ -158,6 +192,10 @@ def test_bad_layout_config_raises():
     for hp in (-0.1, 1.5):
         with pytest.raises(ConfigError, match="highpass"):
             LayoutConfig(highpass=hp)
+    with pytest.raises(ConfigError, match="yaw_from"):
+        LayoutConfig(yaw_from="edges")
+    with pytest.raises(ConfigError, match="min_line_peak"):
+        LayoutConfig(min_line_peak=0.5)
 
 
 def test_room_layout_json_round_trip_and_bad_record():
