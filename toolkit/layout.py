@@ -245,8 +245,7 @@ def line_yaw(scene, up: np.ndarray, views=None, step: float = 0.25, min_length: 
     sin_tilt = np.sin(np.deg2rad(min_tilt_deg))
     for v in (range(len(scene)) if views is None else views):
         img = scene.load_image(int(v)).float().clamp(0, 1)
-        grey = (img.mean(0) * 255).round().to(torch.uint8).numpy() if img.shape[0] == 3 else \
-            (img[0] * 255).round().to(torch.uint8).numpy()
+        grey = (img.mean(0) * 255).round().to(torch.uint8).numpy()  # RGB or one channel
         segs = lsd.detect(grey)[0]
         if segs is None:
             continue
@@ -265,7 +264,7 @@ def line_yaw(scene, up: np.ndarray, views=None, step: float = 0.25, min_length: 
         ang = np.degrees(np.arctan2(h[ok] @ e2, h[ok] @ e1)) % 90.0
         np.add.at(hist, (ang / step).astype(int) % nb, length[ok])
         used += int(ok.sum())
-    if used == 0 or hist.sum() <= 0:
+    if used == 0:
         return float("nan"), 0.0, used
     k = np.arange(-6, 7)
     w = np.exp(-0.5 * (k / 2.0) ** 2)
@@ -279,9 +278,10 @@ def line_yaw(scene, up: np.ndarray, views=None, step: float = 0.25, min_length: 
     return float(angle), float(sm[i] / med) if med > 0 else float("inf"), used
 
 
-def _axes_at(up: np.ndarray, angle_deg: float) -> np.ndarray:
+def _axes_at(up: np.ndarray, angle: float) -> np.ndarray:
+    """Rows: :func:`_frame_from_up`'s horizontal axes turned by ``angle`` (radians) about up, and up."""
     e1, e2 = _frame_from_up(up)
-    c, s = np.cos(np.deg2rad(angle_deg)), np.sin(np.deg2rad(angle_deg))
+    c, s = np.cos(angle), np.sin(angle)
     return np.stack([c * e1 + s * e2, -s * e1 + c * e2, up])
 
 
@@ -299,8 +299,7 @@ def _horizontal_axes(points: np.ndarray, up: np.ndarray, scale: float) -> np.nda
         v = _sharpness(c * x1 + s * x2, b) + _sharpness(-s * x1 + c * x2, b)
         if v > best:
             best, th_best = v, th
-    c, s = np.cos(th_best), np.sin(th_best)
-    return np.stack([c * e1 + s * e2, -s * e1 + c * e2, up])
+    return _axes_at(up, th_best)
 
 
 def box_depth(layout: RoomLayout, origins: torch.Tensor, dirs: torch.Tensor):
@@ -451,12 +450,12 @@ def fit_room_layout(scene, points: np.ndarray | None = None, cfg: LayoutConfig =
         scale = camera_point_distance(points, cams)
     else:
         scale = float(np.median(np.linalg.norm(cams - cams.mean(0), axis=-1))) or 1.0
+    views = np.unique(np.linspace(0, len(scene) - 1, min(len(scene), cfg.max_views)).round().astype(int))
     axes, yaw = _horizontal_axes(points, up, scale), ("points" if len(points) >= 10 else "cameras")
     if cfg.yaw_from == "lines":
-        views = np.unique(np.linspace(0, len(scene) - 1, min(len(scene), cfg.max_views)).round().astype(int))
         angle, peak, segments = line_yaw(scene, up, views)
         if np.isfinite(angle) and segments >= 20 and peak >= cfg.min_line_peak:
-            axes, yaw = _axes_at(up, angle), "lines"
+            axes, yaw = _axes_at(up, np.deg2rad(angle)), "lines"
         if log is not None:
             log(f"[dars] room layout: yaw from {yaw}" + (f" ({segments} edge segments, peak {peak:.1f}x the median, "
                                                       f"{angle:.2f} deg)" if np.isfinite(angle) else
@@ -471,7 +470,6 @@ def fit_room_layout(scene, points: np.ndarray | None = None, cfg: LayoutConfig =
         qp = (points - origin) @ axes.T
         lo = np.minimum(lo, np.percentile(qp, 1, axis=0))
         hi = np.maximum(hi, np.percentile(qp, 99, axis=0))
-    views = np.unique(np.linspace(0, len(scene) - 1, min(len(scene), cfg.max_views)).round().astype(int))
     layout = RoomLayout(origin=origin, axes=axes, lo=lo.copy(), hi=hi.copy(), confident=np.zeros(6, bool),
                         contrast=np.zeros(6), coverage=np.zeros(6), photos=len(scene), yaw=yaw)
     sweep = _Sweep(scene, views, cfg, layout)
