@@ -299,6 +299,24 @@ def test_priors_layout_stage_writes_the_box_and_training_reads_it(tmp_path, caps
     assert "fitted in another frame" in err and "dars priors layout" in err
 
 
+def test_priors_layout_yaw_from_is_chosen_on_the_command_line_and_recorded(tmp_path, capsys):
+    """`dars priors layout --yaw-from points` fits the walls' directions from the sparse points (never the edges),
+    records the choice in layout.json's config and says where the directions came from; a bad choice is refused."""
+    from synthetic import make_scene
+    from toolkit.cli import main
+
+    scene = make_scene(tmp_path / "s", n_train=12, n_test=2)
+    for how in ("points", "lines"):
+        assert main(["priors", "layout", str(scene), "--out", str(tmp_path / how), "--yaw-from", how]) == 0
+        out = capsys.readouterr().out
+        doc = json.load(open(tmp_path / how / "layout.json"))
+        assert doc["config"]["yaw_from"] == how and "walls' directions from the" in out
+        if how == "points":
+            assert doc["yaw"] in ("points", "cameras") and "photos' edges" not in out
+    assert main(["priors", "layout", str(scene), "--out", str(tmp_path / "x"), "--yaw-from", "walls"]) == 2
+    assert "invalid choice: 'walls'" in capsys.readouterr().err
+
+
 def test_layout_targets_only_on_pixels_labelled_wall_or_floor(sample_scene_path):
     """A plain pedestal side is textureless too, but the box's depth there is the wall behind it: with labels, the
     layout targets keep to pixels labelled wall or floor (predicted labels by default; the ground truth here, asked

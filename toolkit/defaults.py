@@ -5,7 +5,7 @@ Importing this module loads neither torch nor numpy (``dars --help`` imports it)
 
 from __future__ import annotations
 
-__all__ = ["DARS_DEFAULT", "SNAP_LAYOUT_DEFAULT"]
+__all__ = ["DARS_DEFAULT", "SNAP_LAYOUT_DEFAULT", "YAW_FROM_DEFAULT"]
 
 DARS_DEFAULT = False
 """The sampler a run gets when it does not ask for one: True — DARS (W-weighted ray selection, per-ray fine budgets,
@@ -23,3 +23,10 @@ gallery 1000002). The gain is flat around it: the mesh's median depth error at 0
 without its ``aabb`` (5.48), every vertex movable (README, "Walls and floor flattened onto the room's box"). Since
 2026-12-05 the simplified mesh is snapped (before, the full-resolution one, which the simplifier then tore: README,
 "The GLB flattened after its simplification")."""
+
+YAW_FROM_DEFAULT = "lines"
+""":attr:`toolkit.layout.LayoutConfig.yaw_from` (``dars priors layout --yaw-from``): where the room box's walls get
+their directions — ``"lines"``, the photos' straight edges (falling back to the sparse points without a clear peak),
+or ``"points"``, the sparse points' histograms. Chosen on 2026-12-05 against the generator's walls (scoring only):
+within 0.17° over the eight validation galleries at four turns of the world each, where the points were up to 2.4°
+off (README, "The room's yaw from the photos' edges")."""

@@ -45,6 +45,7 @@ import torch
 import torch.nn.functional as F
 
 from ._checks import ConfigError
+from .defaults import YAW_FROM_DEFAULT
 from .cameras import Cameras, generate_rays
 
 __all__ = ["LayoutConfig", "RoomLayout", "fit_room_layout", "layout_depth_targets", "box_depth", "line_yaw",
@@ -113,7 +114,7 @@ class LayoutConfig:
     validation galleries), above the 6-10 cm the two fits differ by on faces both place right (gallery 1000001)."""
     min_pixels: float = 0.01
     """... and at least this fraction of the sweep's pixels leave the box through it."""
-    yaw_from: str = "lines"
+    yaw_from: str = YAW_FROM_DEFAULT
     """How the horizontal axes are found: ``"lines"`` — the photos' straight edges (:func:`line_yaw`: every
     segment of a horizontal 3D line votes for its direction; picture rails, frames, the walls' feet), falling back
     to the points where the edges give no clear peak; ``"points"`` — the sharpest histograms of the sparse points'

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from .._checks import DarsError
+from ..defaults import YAW_FROM_DEFAULT
 from ._common import COUNT, FINITE, NONNEGATIVE, POSITIVE, SCENE_HELP, print_json
 
 _LM = ["(0,0)", "(1,-1)", "(1,0)", "(1,1)", "(2,-2)", "(2,-1)", "(2,0)", "(2,1)", "(2,2)"]
@@ -81,6 +82,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     _common(q, "layout")
     q.add_argument("--no-upright", action="store_true",
                    help="keep the input's orientation, as `dars train --no-upright` (default: as dars train loads it)")
+    q.add_argument("--yaw-from", choices=("lines", "points"), default=YAW_FROM_DEFAULT,
+                   help="the walls' directions: lines — the photos' straight edges, falling back to the sparse points "
+                        "where they give no clear direction; points — the sparse points' histograms (before "
+                        f"2026-12-05) (default: {YAW_FROM_DEFAULT})")
     q.set_defaults(func=cmd_layout)
     _add_sh_probe(stages)
 
@@ -257,20 +262,24 @@ def cmd_light(args: argparse.Namespace) -> int:
     return 0
 
 
+_YAW_SOURCE = {"lines": "photos' edges", "points": "sparse points", "cameras": "cameras (too few sparse points)"}
+
+
 def cmd_layout(args: argparse.Namespace) -> int:
+    from ..layout import LayoutConfig
     from ..priors import priors_layout
     from ..scene import load_scene
 
     scene = load_scene(args.scene, args.split, downscale=args.downscale, upright="off" if args.no_upright else "auto")
     log = None if args.json else (lambda m: print(m, file=sys.stderr))
     with _out(args, scene, "layout").guard() as out:
-        d = priors_layout(scene, out, log=log)
+        d = priors_layout(scene, out, cfg=LayoutConfig(yaw_from=args.yaw_from), log=log)
     if args.json:
         print_json(d)
         return 0
     size = [round(b - a, 2) for a, b in zip(d["lo"], d["hi"])]
     print(f"room box of {d['scene']} [{d['split']}, {d['photos']} photos, {d['sparse_points']} sparse points]: "
-          f"{size} scene units")
+          f"{size} scene units; walls' directions from the {_YAW_SOURCE.get(d.get('yaw'), 'sparse points')}")
     for name, f in d["faces"].items():
         print(f"  {name:>8}: {'counts' if f['confident'] else 'no face'}  (contrast {f['contrast']:.2f}, "
               f"{100 * f['coverage']:.0f} % of the pixels)")
