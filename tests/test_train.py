@@ -458,30 +458,34 @@ def test_minutes_budget_retimes_when_steps_get_slower_and_the_log_replays_it(tin
     """A ``minutes`` budget whose steps triple in cost after the calibration (an occupancy grid filling up, a busier
     machine) checks its clock at 25/50/75 % and cuts its step count, recorded in ``config.json``; ``--steps N`` with
     the logged knots replays the run to the same parameters."""
-    import time
-
     import toolkit.train.loop as loop
 
     real = loop.train_step
 
-    def slower(state, data):
-        if state.step >= 12:
-            time.sleep(0.2)
-        return real(state, data)
+    clock = [0.0]  # the loop's clock, advanced by the steps alone: the same run however busy the machine is
+
+    def slower(state, data):  # 1 s a step, three times that from step 12 on
+        out = real(state, data)
+        clock[0] += 1.0 if state.step < 12 else 3.0
+        return out
 
     monkeypatch.setattr(loop, "train_step", slower)
-    cfg = _small(minutes=0.15, calibration_steps=8, checkpoint_every=1000)
-    logs = []
+    monkeypatch.setattr(loop.time, "monotonic", lambda: clock[0])
+    cfg = _small(minutes=0.3, calibration_steps=8, checkpoint_every=1000)  # so short that steps 6-7 of a replay
+    logs = []                                                               # would be in stage b without its 8:0 knot
     a = train(tiny, tmp_path / "a", cfg, progress_bar=False, log=logs.append)
     meta = json.loads((tmp_path / "a" / "config.json").read_text())
     cal, knots = meta["calibration"], meta["config"]["schedule_knots"]
     assert cal["retimed"] and knots and cal["steps"] == meta["config"]["steps"] == cal["retimed"][-1]["steps"]
+    assert knots[0][1] == 0 and 0 < knots[0][0] <= 8  # the calibration: no step count (progress 0) before it
+    assert f"--schedule-knots {knots[0][0]}:0)" in next(m for m in logs if "timing calibration" in m)
     first = int(next(m for m in logs if "timing calibration" in m).split("-> ")[1].split()[0])
     assert meta["config"]["steps"] < first  # the slower steps cost steps, not minutes
     replay = [m for m in logs if "--schedule-knots" in m][-1].split("--steps ")[-1].rstrip(")")  # the last check
     steps, knot_text = replay.split(" --schedule-knots ")
     assert int(steps) == meta["config"]["steps"]
     monkeypatch.setattr(loop, "train_step", real)
+    monkeypatch.undo()  # the real clock again for the replay, which has no budget to time
     from toolkit.train.config import parse_knots
 
     b = train(tiny, tmp_path / "b", _small(steps=int(steps), schedule_knots=parse_knots(knot_text),
@@ -491,6 +495,25 @@ def test_minutes_budget_retimes_when_steps_get_slower_and_the_log_replays_it(tin
     assert ca["step"] == cb["step"] == int(steps)
     for k, v in ca["field"].items():
         assert torch.equal(v, cb["field"][k]), f"parameter {k} differs in the replay"
+
+
+def test_a_minutes_budget_s_calibration_knot_keeps_its_first_steps_in_stage_a():
+    """Before its calibration a minutes budget has no step count, so its progress is 0 (stage a, no light steps)
+    whatever count it then gets; the replay's first knot (c, 0) keeps it so, and bends nothing after c."""
+    from toolkit.train.config import parse_knots
+    from toolkit.train.step import _progress_at, is_light_step
+
+    light = dict(light_period=2, light_steps=1, shading="pbr", fixed_light=False)
+    plain = make_config("fast", steps=20, calibration_steps=8, **light)
+    replay = make_config("fast", steps=20, calibration_steps=8, schedule_knots=parse_knots("8:0"), **light)
+    assert _progress_at(plain, 7) == 7 / 20 and _progress_at(replay, 7) == 0.0
+    assert [_progress_at(replay, s) for s in range(8, 21)] == [_progress_at(plain, s) for s in range(8, 21)]
+    assert not any(is_light_step(replay, s) for s in range(8)) and any(is_light_step(plain, s) for s in range(8))
+    bent = make_config("fast", steps=40, calibration_steps=8, schedule_knots=parse_knots("8:0,12:20"))
+    assert _progress_at(bent, 12) == 12 / 20 and _progress_at(bent, 5) == 0.0
+    for bad in ("8:0,4:10", "4:10,8:0"):
+        with pytest.raises(ConfigError, match="only the first may be STEP:0"):
+            make_config("fast", steps=40, schedule_knots=parse_knots(bad))
 
 
 def test_room_layer_density_on_enabled_faces_only():

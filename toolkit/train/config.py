@@ -133,8 +133,9 @@ class TrainConfig:
     schedule_knots: tuple = ()
     """``((step, planned_steps), ...)``: where a ``minutes`` budget was re-timed mid-run (:func:`toolkit.train.step.
     retime_steps`), and the step count planned until then; the schedule's progress is piecewise linear through them
-    (empty: ``step / steps``). Filled by training; ``dars train --steps N --schedule-knots S:N,...`` replays such a
-    run."""
+    (empty: ``step / steps``). A first knot ``(c, 0)`` is a ``minutes`` budget's calibration at step ``c``: before it
+    the run had no step count and its progress was 0 (stage a), whatever the count it then got. Filled by training;
+    ``dars train --steps N --schedule-knots S:N,...`` replays such a run."""
     snapshot_minutes: tuple[float, ...] = ()
     """Save the field at these elapsed training minutes (benchmarks evaluate them)."""
     device: str = "auto"
@@ -367,10 +368,11 @@ def check_knots(knots: tuple, steps: int | None = None) -> tuple:
     before ``steps`` (when given)."""
     knots = tuple((int(s), int(n)) for s, n in knots)
     prev = 0
-    for s, n in knots:
-        if s <= prev or n <= s:
+    for i, (s, n) in enumerate(knots):
+        if s <= prev or (n <= s and not (i == 0 and n == 0)):
             raise ConfigError(f"schedule knots {format_knots(knots)}: each is STEP:STEPS with the steps increasing "
-                              "and STEPS (the plan at that step) beyond STEP")
+                              "and STEPS (the plan at that step) beyond STEP; only the first may be STEP:0 (the "
+                              "calibration of a --minutes run)")
         prev = s
     if steps and knots and knots[-1][0] >= steps:
         raise ConfigError(f"schedule knots {format_knots(knots)}: the last knot's step must be below steps={steps}")

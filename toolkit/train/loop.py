@@ -293,7 +293,8 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                                           n_win if full else state.step, log)
                     if ddp is not None:
                         rec = ddp.broadcast_object(rec)
-                    cfg = replace(cfg, steps=rec["steps"])
+                    cfg = replace(cfg, steps=rec["steps"],
+                                  schedule_knots=tuple(map(tuple, rec.get("schedule_knots", ()))))
                     state.cfg = local(cfg)
                     bar.total = cfg.steps
                     write_run_config(rec)

@@ -170,7 +170,12 @@ def _progress_at(cfg, step: int) -> float:
     """:func:`progress` of step ``step`` of a run with config ``cfg``: ``step / cfg.steps``, or, where a ``minutes``
     budget was re-timed mid-run (:attr:`TrainConfig.schedule_knots`), piecewise linear: each stretch runs on to the
     step count planned in it, so the schedule stays continuous and a replay computes the same numbers."""
-    return _piecewise(step, 0, cfg) if cfg.steps else 0.0
+    if not cfg.steps:
+        return 0.0
+    knots = cfg.schedule_knots
+    if knots and knots[0][1] == 0 and step < knots[0][0]:  # a minutes budget before its calibration: no count yet
+        return 0.0
+    return _piecewise(step, 0, cfg)
 
 
 def _piecewise(step: int, start: int, cfg) -> float:
@@ -179,7 +184,7 @@ def _piecewise(step: int, start: int, cfg) -> float:
     is exactly ``(step - start) / (cfg.steps - start)``."""
     s0, p0 = start, 0.0
     for s1, n in cfg.schedule_knots:
-        if s1 <= s0:
+        if s1 <= s0 or n == 0:  # n == 0: a minutes budget's calibration (:func:`_progress_at`), not a bend
             continue
         if step <= s1:
             return min(1.0, p0 + (step - s0) / max(1, n - s0) * (1.0 - p0))
@@ -226,8 +231,11 @@ def calibrate_steps(state: TrainState, budget_minutes: float, t_window: float, n
     steps = max(state.step, state.step + int(left / per_step))
     rec = {"minutes": budget_minutes, "seconds_per_step": round(per_step, 4), "at_step": state.step,
            "elapsed": round(state.elapsed, 2), "steps": steps}
+    if steps > state.step:  # the steps so far ran with no step count (progress 0): a replay must know where
+        rec["schedule_knots"] = [[int(state.step), 0]]
     log(f"[dars] timing calibration: {per_step:.3f} s/step on this machine -> {steps} steps for {budget_minutes:g} min "
-        f"(reproduce exactly with --steps {steps})")
+        f"(reproduce exactly with --steps {steps}"
+        + (f" --schedule-knots {state.step}:0)" if steps > state.step else ")"))
     return rec
 
 
