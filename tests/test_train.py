@@ -484,8 +484,7 @@ def test_minutes_budget_retimes_when_steps_get_slower_and_the_log_replays_it(tin
     replay = [m for m in logs if "--schedule-knots" in m][-1].split("--steps ")[-1].rstrip(")")  # the last check
     steps, knot_text = replay.split(" --schedule-knots ")
     assert int(steps) == meta["config"]["steps"]
-    monkeypatch.setattr(loop, "train_step", real)
-    monkeypatch.undo()  # the real clock again for the replay, which has no budget to time
+    monkeypatch.undo()  # the real step and clock again for the replay, which has no budget to time
     from toolkit.train.config import parse_knots
 
     b = train(tiny, tmp_path / "b", _small(steps=int(steps), schedule_knots=parse_knots(knot_text),

@@ -294,7 +294,7 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                     if ddp is not None:
                         rec = ddp.broadcast_object(rec)
                     cfg = replace(cfg, steps=rec["steps"],
-                                  schedule_knots=tuple(map(tuple, rec.get("schedule_knots", ()))))
+                                  schedule_knots=rec.get("schedule_knots", cfg.schedule_knots))
                     state.cfg = local(cfg)
                     bar.total = cfg.steps
                     write_run_config(rec)

@@ -231,11 +231,12 @@ def calibrate_steps(state: TrainState, budget_minutes: float, t_window: float, n
     steps = max(state.step, state.step + int(left / per_step))
     rec = {"minutes": budget_minutes, "seconds_per_step": round(per_step, 4), "at_step": state.step,
            "elapsed": round(state.elapsed, 2), "steps": steps}
+    knot = ""
     if steps > state.step:  # the steps so far ran with no step count (progress 0): a replay must know where
         rec["schedule_knots"] = [[int(state.step), 0]]
+        knot = f" --schedule-knots {state.step}:0"
     log(f"[dars] timing calibration: {per_step:.3f} s/step on this machine -> {steps} steps for {budget_minutes:g} min "
-        f"(reproduce exactly with --steps {steps}"
-        + (f" --schedule-knots {state.step}:0)" if steps > state.step else ")"))
+        f"(reproduce exactly with --steps {steps}{knot})")
     return rec
 
 
