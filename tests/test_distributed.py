@@ -2,8 +2,10 @@
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -24,15 +26,29 @@ def tiny(tmp_path_factory):
 
 
 def _env():
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    # PYTHONFAULTHANDLER: a rank that dies on a signal prints every thread's Python stack (where it was)
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONFAULTHANDLER="1",
+               PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("WORLD_SIZE", None)
     return env
 
 
 def _torchrun(n: int, *args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+    """``torchrun -m toolkit.cli ARGS`` with ``n`` processes.
+
+    Once, in CI on 2026-12-05 (not reproduced in 22 local runs, idle or loaded), a gloo rank aborted
+    in C++ ("terminate called without an active exception", SIGABRT) with no Python error. A run whose rank died on
+    SIGABRT is therefore run once more, from an empty ``--out``, with a warning that carries the first run's stack
+    (faulthandler); any other failure, or a second abort, fails the test."""
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(n),
            "-m", "toolkit.cli", *args]
-    return subprocess.run(cmd, cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=timeout)
+    p = subprocess.run(cmd, cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=timeout)
+    if p.returncode != 0 and "(SIGABRT)" in p.stderr:
+        warnings.warn(f"a rank aborted (SIGABRT); running once more. Its stderr:\n{p.stderr[-6000:]}")
+        if "--out" in args:
+            shutil.rmtree(args[args.index("--out") + 1], ignore_errors=True)
+        p = subprocess.run(cmd, cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=timeout)
+    return p
 
 
 def test_split_count_and_local_config():
@@ -49,11 +65,36 @@ def test_split_count_and_local_config():
         Distributed(0, 2, 0, "gloo").check_supported(make_config("fast", colour_correction="on"), None)
 
 
+def test_shutdown_meets_at_a_barrier_only_after_a_finished_command(monkeypatch):
+    import toolkit.distributed as td
+
+    calls = []
+
+    def barrier():
+        calls.append("barrier")
+        if fail:
+            raise RuntimeError("peer gone")
+
+    monkeypatch.setattr(torch.distributed, "is_initialized", lambda: True)
+    monkeypatch.setattr(torch.distributed, "barrier", barrier)
+    monkeypatch.setattr(torch.distributed, "destroy_process_group", lambda: calls.append("destroy"))
+    for finished, fail, want in ((True, False, ["barrier", "destroy"]), (False, False, ["destroy"]),
+                                 (True, True, ["barrier", "destroy"])):
+        calls.clear()
+        monkeypatch.setattr(td, "_CURRENT", Distributed(0, 2, 0, "gloo"))
+        if fail:  # a failed barrier still leaves the group, and says why
+            with pytest.raises(RuntimeError, match="peer gone"):
+                td.shutdown(finished=finished)
+        else:
+            td.shutdown(finished=finished)
+        assert calls == want and td.current() is None
+
+
 def test_two_process_gloo_training_stays_in_sync_and_evaluates(tiny, tmp_path):
     run = tmp_path / "run"
     p = _torchrun(2, "train", str(tiny), "--out", str(run), "--steps", "8", "--threads", "1", "--batch-rays", "512",
                   "--quiet")
-    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-4000:]
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-8000:]
     assert p.stdout.count("run: ") == 1  # rank 0 alone reports (and writes)
     rows = [json.loads(x) for x in (run / "log.jsonl").read_text().splitlines()]
     train_rows = [r for r in rows if r["kind"] == "train"]
@@ -87,7 +128,7 @@ def test_two_processes_share_rank_0s_room_box(tiny, tmp_path):
     run = tmp_path / "lay"
     p = _torchrun(2, "train", str(tiny), "--out", str(run), "--steps", "4", "--threads", "1", "--batch-rays", "512",
                   "--layout-depth", "0.1", "--no-auto-priors")
-    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-4000:]
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-8000:]
     assert p.stderr.count("room layout: box") == 1, p.stderr[-3000:]  # rank 0 alone fits and reports
     meta = json.loads((run / "config.json").read_text())
     assert meta["world_size"] == 2 and set(meta["room_layout"]["faces"]) == set(FACE_NAMES)

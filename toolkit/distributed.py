@@ -267,9 +267,18 @@ def current() -> Distributed | None:
     return _CURRENT
 
 
-def shutdown() -> None:
-    """Leave the process group (end of a data-parallel command)."""
+def shutdown(finished: bool = False) -> None:
+    """Leave the process group (end of a data-parallel command).
+
+    ``finished``: every rank reached the end of the command normally, so they meet at a barrier first and tear their
+    connections down together (a rank that left while rank 0 still wrote the run would close its side of live
+    connections). After an error the other ranks may be inside another collective, so there is no barrier then.
+    """
     global _CURRENT
-    if _CURRENT is not None and torch.distributed.is_initialized():
-        torch.distributed.destroy_process_group()
-    _CURRENT = None
+    ddp, _CURRENT = _CURRENT, None
+    if ddp is not None and torch.distributed.is_initialized():
+        try:
+            if finished:
+                torch.distributed.barrier()
+        finally:
+            torch.distributed.destroy_process_group()

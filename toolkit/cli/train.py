@@ -290,8 +290,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         ck = train(args.scene, args.out, cfg, resume=args.resume, split=args.split or "train",
                    progress_bar=not args.quiet, priors_root=priors, force=args.force, downscale=args.downscale,
                    upright="off" if args.no_upright else "auto")
-    finally:
+    except BaseException:
         shutdown()
+        raise
+    shutdown(finished=True)
     if ddp is None or ddp.is_main:
         print(f"run: {Path(args.out)}  checkpoint: {ck}")
     return 0
