@@ -26,6 +26,7 @@ Example:
 
 from __future__ import annotations
 
+import faulthandler
 import hashlib
 import os
 from dataclasses import dataclass, replace
@@ -251,6 +252,10 @@ def init_from_env(device: str = "auto") -> Distributed | None:
             raise ConfigError(f"WORLD_SIZE={world} but {var} is not set: launch data-parallel training with torchrun "
                               "(`torchrun --standalone --nproc_per_node N -m toolkit.cli train ...`)")
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    try:  # a rank killed by a signal (a C++ abort in a collective) prints where it was
+        faulthandler.enable()
+    except (OSError, ValueError, AttributeError):  # stderr is not a file (captured): no stacks, nothing else lost
+        pass
     use_cuda = device != "cpu" and torch.cuda.is_available() and not device.startswith("cpu")
     backend = "nccl" if use_cuda else "gloo"
     if use_cuda:
