@@ -171,6 +171,29 @@ def test_the_edges_set_the_yaw_where_the_points_would_not():
     assert fallback.yaw == "points" and np.allclose(fallback.axes, by_points.axes)
 
 
+def test_the_edge_yaw_and_the_sweep_read_each_photo_once(monkeypatch):
+    """fit_room_layout decodes a photo once for both the edge yaw and the sweep: the box is the one fitted when each
+    reads its own copy (the sweep's images built from the photos as the sweep itself would)."""
+    import toolkit.layout as lay_mod
+
+    room = _BoxRoom()
+    reads = []
+    load = room.load_image
+    monkeypatch.setattr(room, "load_image", lambda v: reads.append(int(v)) or load(v), raising=False)
+    shared = fit_room_layout(room, room.points, CFG)
+    assert sorted(reads) == sorted(set(reads)) and len(reads) == min(len(room), CFG.max_views), reads
+    sweep = lay_mod._Sweep
+
+    def own_copies(scene, views, cfg, layout, images=None):  # the sweep ignores the shared images: reads its own
+        assert images is not None and len(images) == len(views)
+        return sweep(scene, views, cfg, layout)
+
+    monkeypatch.setattr(lay_mod, "_Sweep", own_copies)
+    apart = fit_room_layout(room, room.points, CFG)
+    np.testing.assert_array_equal(shared.lo, apart.lo)
+    np.testing.assert_array_equal(shared.hi, apart.hi)
+
+
 def test_featureless_walls_give_no_face_and_no_target():
     room = _BoxRoom(plain=True)
     lay = fit_room_layout(room, room.points, CFG)

@@ -223,7 +223,7 @@ def _sharpness(x: np.ndarray, b: float) -> float:
 
 
 def line_yaw(scene, up: np.ndarray, views=None, step: float = 0.25, min_length: float = 8.0,
-             min_tilt_deg: float = 5.0) -> tuple[float, float, int]:
+             min_tilt_deg: float = 5.0, load=None) -> tuple[float, float, int]:
     """The room's yaw from the photos' straight edges (Manhattan world): (angle in degrees in [-45, 45) of the
     walls' direction from :func:`_frame_from_up`'s first axis, the histogram's peak over its median, segments used).
 
@@ -233,7 +233,9 @@ def line_yaw(scene, up: np.ndarray, views=None, step: float = 0.25, min_length: 
     lines (whose ``n × up`` is any direction) and do not vote; a segment at eye height, whose plane is horizontal,
     gives no direction either. Walls, the lines where they meet the floor and ceiling, frames, rails and cases all
     vote for the room's two axes; other edges spread. The histogram (``step`` degrees) is smoothed (σ = 2 bins) and
-    its peak refined by a parabola through the three bins round it. Returns (nan, 0, n) where nothing votes."""
+    its peak refined by a parabola through the three bins round it. Returns (nan, 0, n) where nothing votes.
+    ``load(v)``: view ``v``'s photo as a float tensor [C, H, W] (default ``scene.load_image``; every view is loaded
+    once, in order)."""
     import cv2
 
     e1, e2 = _frame_from_up(up)
@@ -245,7 +247,7 @@ def line_yaw(scene, up: np.ndarray, views=None, step: float = 0.25, min_length: 
     used = 0
     sin_tilt = np.sin(np.deg2rad(min_tilt_deg))
     for v in (range(len(scene)) if views is None else views):
-        img = scene.load_image(int(v)).float().clamp(0, 1)
+        img = (scene.load_image(int(v)) if load is None else load(int(v))).float().clamp(0, 1)
         grey = (img.mean(0) * 255).round().to(torch.uint8).numpy()  # RGB or one channel
         segs = lsd.detect(grey)[0]
         if segs is None:
@@ -334,6 +336,16 @@ def _box_exit(o: torch.Tensor, d: torch.Tensor, pos: torch.Tensor, lo: torch.Ten
     return tmin, 2 * k + side
 
 
+def _sweep_image(im: torch.Tensor, cfg: LayoutConfig) -> torch.Tensor:
+    """A photo [C, H, W] as the sweep compares it: float, area-downsized to ``cfg.max_side`` on its long side."""
+    im = im.float()
+    h, w = im.shape[1:]
+    s = min(1.0, cfg.max_side / max(h, w))
+    if s < 1.0:
+        im = F.interpolate(im[None], size=(max(1, round(h * s)), max(1, round(w * s))), mode="area")[0]
+    return im
+
+
 class _Sweep:
     """Photometric cost of a box hypothesis over view pairs (small images, all pixels).
 
@@ -342,18 +354,13 @@ class _Sweep:
     lands at ``(o_i - c_j) R_j + t d_i R_j`` in camera j. A cost is then a few elementwise passes and one
     ``grid_sample`` (float32: the projections are of metres at 128 px, far inside its precision)."""
 
-    def __init__(self, scene, views: np.ndarray, cfg: LayoutConfig, layout: "RoomLayout"):
+    def __init__(self, scene, views: np.ndarray, cfg: LayoutConfig, layout: "RoomLayout", images=None):
+        """``images``: the views' photos already at :func:`_sweep_image` size (one per view, in order), else each
+        is read from ``scene``."""
         from .sampling import neighbour_views
 
         cams = scene.cameras[views.tolist()]
-        imgs = []
-        for v in views:
-            im = scene.load_image(int(v)).float()
-            h, w = im.shape[1:]
-            s = min(1.0, cfg.max_side / max(h, w))
-            if s < 1.0:
-                im = F.interpolate(im[None], size=(max(1, round(h * s)), max(1, round(w * s))), mode="area")[0]
-            imgs.append(im)
+        imgs = list(images) if images is not None else [_sweep_image(scene.load_image(int(v)), cfg) for v in views]
         H, W = imgs[0].shape[1:]
         if any(im.shape[1:] != (H, W) for im in imgs):
             imgs = [F.interpolate(im[None], size=(H, W), mode="area")[0] for im in imgs]
@@ -453,8 +460,15 @@ def fit_room_layout(scene, points: np.ndarray | None = None, cfg: LayoutConfig =
         scale = float(np.median(np.linalg.norm(cams - cams.mean(0), axis=-1))) or 1.0
     views = np.unique(np.linspace(0, len(scene) - 1, min(len(scene), cfg.max_views)).round().astype(int))
     axes, yaw = _horizontal_axes(points, up, scale), ("points" if len(points) >= 10 else "cameras")
+    small: list[torch.Tensor] = []  # the sweep's images, kept small as the edge yaw reads each photo once
+
+    def load(v: int) -> torch.Tensor:
+        img = scene.load_image(v)
+        small.append(_sweep_image(img, cfg))
+        return img
+
     if cfg.yaw_from == "lines":
-        angle, peak, segments = line_yaw(scene, up, views)
+        angle, peak, segments = line_yaw(scene, up, views, load=load)
         if np.isfinite(angle) and segments >= 20 and peak >= cfg.min_line_peak:
             axes, yaw = _axes_at(up, np.deg2rad(angle)), "lines"
         if log is not None:
@@ -473,7 +487,7 @@ def fit_room_layout(scene, points: np.ndarray | None = None, cfg: LayoutConfig =
         hi = np.maximum(hi, np.percentile(qp, 99, axis=0))
     layout = RoomLayout(origin=origin, axes=axes, lo=lo.copy(), hi=hi.copy(), confident=np.zeros(6, bool),
                         contrast=np.zeros(6), coverage=np.zeros(6), photos=len(scene), yaw=yaw)
-    sweep = _Sweep(scene, views, cfg, layout)
+    sweep = _Sweep(scene, views, cfg, layout, images=small if len(small) == len(views) else None)
     # per face: the outermost camera's coordinate and the margin; the sweep's offsets are distances beyond it
     ext = [cmax[f // 2] + margin if f % 2 else cmin[f // 2] - margin for f in range(6)]
 
