@@ -170,21 +170,21 @@ def _progress_at(cfg, step: int) -> float:
     """:func:`progress` of step ``step`` of a run with config ``cfg``: ``step / cfg.steps``, or, where a ``minutes``
     budget was re-timed mid-run (:attr:`TrainConfig.schedule_knots`), piecewise linear: each stretch runs on to the
     step count planned in it, so the schedule stays continuous and a replay computes the same numbers."""
-    if not cfg.steps:
-        return 0.0
-    knots = cfg.schedule_knots
-    if knots and knots[0][1] == 0 and step < knots[0][0]:  # a minutes budget before its calibration: no count yet
-        return 0.0
-    return _piecewise(step, 0, cfg)
+    return _piecewise(step, 0, cfg) if cfg.steps else 0.0
 
 
 def _piecewise(step: int, start: int, cfg) -> float:
     """0 at ``start``, 1 at ``cfg.steps``; linear in between, bent at each knot ``(s, n)`` of
     :attr:`TrainConfig.schedule_knots` (up to step ``s`` the run was planned to end at step ``n``). Without knots this
-    is exactly ``(step - start) / (cfg.steps - start)``."""
+    is exactly ``(step - start) / (cfg.steps - start)``. A knot ``(c, 0)`` is a ``minutes`` budget's calibration at
+    step ``c``: before it the run had no step count (0), and it bends nothing after it."""
     s0, p0 = start, 0.0
     for s1, n in cfg.schedule_knots:
-        if s1 <= s0 or n == 0:  # n == 0: a minutes budget's calibration (:func:`_progress_at`), not a bend
+        if n == 0:
+            if step < s1:
+                return 0.0
+            continue
+        if s1 <= s0:
             continue
         if step <= s1:
             return min(1.0, p0 + (step - s0) / max(1, n - s0) * (1.0 - p0))
