@@ -9,8 +9,9 @@ import torch
 
 from conftest import shared
 from toolkit._checks import ConfigError, ShapeError
-from toolkit.bake import (BakeConfig, UnwrapConfig, UVMesh, bake_pbr_textures, compute_tangents, fill_background,
-                          label_faces, rasterize_triangles, sample_texture, unwrap_uv)
+from toolkit.bake import (BakeConfig, UnwrapConfig, UVMesh, bake_pbr_textures, chart_consistent_normals,
+                          compute_tangents, fill_background, label_faces, rasterize_triangles, sample_texture,
+                          unwrap_uv)
 from toolkit.io import linear_to_srgb, read_image, srgb_to_linear
 from toolkit.mesh import Mesh, MeshConfig, extract_mesh
 from toolkit.pinhole import look_at
@@ -86,7 +87,7 @@ def test_unwrap_uv_atlas_properties(pieces):
             unwrap_uv(mesh, UnwrapConfig(max_piece_faces=0))
     assert uvm.uvs.min() >= 0 and uvm.uvs.max() <= 1
     assert np.array_equal(uvm.vertices, mesh.vertices[uvm.vmapping])  # split vertices keep their source
-    assert np.array_equal(uvm.normals, mesh.normals[uvm.vmapping])  # normals continuous across seams
+    assert np.array_equal(uvm.normals, mesh.normals[uvm.vmapping])  # normals continuous across seams (none folds)
     assert set(np.unique(uvm.face_labels)) == {0, 5}
     # charts do not overlap: rasterised coverage equals the summed UV area of the triangles
     size = 256
@@ -320,3 +321,18 @@ def test_label_faces(sphere_uv):
     with pytest.warns(UserWarning, match="semantic"):
         same = label_faces(sphere_uv, lambda p, n: {})
     assert same.face_labels is None
+
+
+def test_a_vertex_normal_that_faces_against_a_face_round_it_is_remade_from_its_faces():
+    # a flat quad facing +z; the source normals: vertex 2 points down (a fold elsewhere in the source mesh summed
+    # into it), the others lean a little (continuous across seams, kept as they are)
+    v = np.float64([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    f = np.int64([[0, 1, 2], [0, 2, 3]])
+    lean = np.float64([0, 0.1, 1]) / np.linalg.norm([0, 0.1, 1])
+    src = np.stack([lean, lean, [0, 0, -1.0], lean])
+    out = chart_consistent_normals(v, f, src)
+    np.testing.assert_allclose(out[2], [0, 0, 1], atol=1e-6)
+    np.testing.assert_allclose(out[[0, 1, 3]], src[[0, 1, 3]], atol=1e-6)
+    assert out.dtype == np.float32 and np.linalg.norm(out[2]) == pytest.approx(1, abs=1e-6)
+    # nothing against any face: returned as given
+    np.testing.assert_allclose(chart_consistent_normals(v, f, np.stack([lean] * 4)), np.stack([lean] * 4), atol=1e-6)

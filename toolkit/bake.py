@@ -50,6 +50,7 @@ __all__ = [
     "ray_scene",
     "compute_tangents",
     "fold_normals",
+    "chart_consistent_normals",
     "rasterize_triangles",
     "sample_texture",
     "bake_pbr_textures",
@@ -78,7 +79,8 @@ class UVMesh(Mesh):
         vertices: float32 [V, 3] world positions, metres (+z up).
         faces: int64 [F, 3] counter-clockwise seen from outside.
         uvs: float32 [V, 2] texture coordinates in glTF convention (origin top-left, v down), in [0, 1].
-        normals: float32 [V, 3] unit vertex normals (taken from the source mesh, so continuous across seams).
+        normals: float32 [V, 3] unit vertex normals (taken from the source mesh, so continuous across seams, except
+            where the mesh folds: :func:`chart_consistent_normals`).
         tangents: float32 [V, 4] unit tangent (xyz, ⟂ normal, along increasing u) and handedness w = ±1.
         vmapping: int64 [V] index of each vertex in the source :class:`~toolkit.mesh.Mesh`.
         face_labels: uint8 [F] semantic class per face (0-6, 255 unlabelled), or None.
@@ -158,8 +160,8 @@ def unwrap_uv(mesh: Mesh, cfg: UnwrapConfig = UnwrapConfig()) -> UVMesh:
         cfg: :class:`UnwrapConfig`.
 
     Returns:
-        :class:`UVMesh` with glTF-convention UVs, source normals and tangents; ``face_labels`` from the source's
-        vertex labels (majority of a face's three vertices) when the mesh has them.
+        :class:`UVMesh` with glTF-convention UVs, source normals (:func:`chart_consistent_normals`) and tangents;
+        ``face_labels`` from the source's vertex labels (majority of a face's three vertices) when the mesh has them.
 
     Raises:
         DarsError: empty mesh, or xatlas produced more than one atlas page.
@@ -205,13 +207,48 @@ def unwrap_uv(mesh: Mesh, cfg: UnwrapConfig = UnwrapConfig()) -> UVMesh:
     vmapping = np.concatenate(vmaps)
     uvs = np.concatenate(uv_list)
     vertices = mesh.vertices[vmapping].astype(np.float32)
-    vnormals = normals[vmapping].astype(np.float32)
+    vnormals = chart_consistent_normals(vertices, faces, normals[vmapping])
     uvs = np.clip(uvs.astype(np.float32), 0.0, 1.0)
     tangents = compute_tangents(vertices, faces, uvs, vnormals)
     face_labels = None
     if mesh.labels is not None:
         face_labels = _majority(mesh.labels[mesh.faces]).astype(np.uint8)
     return UVMesh(vertices, faces, uvs, vnormals, tangents, vmapping, face_labels)
+
+
+def chart_consistent_normals(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Vertex normals of an unwrapped mesh that face the same way as every face round them.
+
+    A vertex keeps its source normal (continuous across chart seams) unless a face of its chart round it faces the
+    other way (normal · face normal < 0: the mesh folds there, and the source normal, summed over both sides of the
+    fold, points anywhere). Such a vertex takes the area-weighted normal of its chart's faces round it instead, so
+    the tangent frames a viewer interpolates over those faces do not turn over inside them: on validation gallery
+    1000001 the faces under the preview's speckles (a pixel of wrong shading on a flat wall) held such a vertex 11x
+    as often as the rest (one test view; README, "No turned-over shading frames in the GLB"). The normal map is
+    baked in these frames, so the field's normal is what a viewer shows.
+
+    Args:
+        vertices: float [V, 3] the unwrapped (seam-split) vertices; faces: int [F, 3]; normals: float [V, 3] the
+            source normals.
+
+    Returns:
+        float32 [V, 3]: the source normals as given, those remade unit.
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces)
+    out = np.array(normals, dtype=np.float32)
+    n = out.astype(np.float64)
+    if not len(f):
+        return out
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    length = np.linalg.norm(fn, axis=1, keepdims=True)
+    unit_fn = fn / np.maximum(length, 1e-30)  # degenerate faces: zero, never against
+    against = np.zeros(len(v), bool)
+    for k in range(3):
+        against[f[(n[f[:, k]] * unit_fn).sum(1) < 0, k]] = True
+    if against.any():
+        out[against] = compute_vertex_normals(v, f)[against]
+    return out
 
 
 def _spatial_pieces(vertices: np.ndarray, faces: np.ndarray, max_faces: int | None) -> list[np.ndarray]:
