@@ -48,12 +48,10 @@ def _groups(sse_p: np.ndarray, sse_f: np.ndarray, count: np.ndarray, names: list
 
 def preview_gap(run_dir: Path, asset_dir: Path, split: str = "test", every: int = 1, threads: int = 2) -> dict:
     """The two splits of one GLB (module docstring) over the views ``0, every, 2·every, ...`` of ``split``."""
-    import open3d as o3d
-
     from export.gltf import load_glb
     from toolkit._checks import SceneError
-    from toolkit.cameras import generate_rays
     from toolkit.io import linear_to_srgb
+    from toolkit.metrics import mesh_depth_map
     from toolkit.pinhole import PinholeCamera
     from toolkit.train import load_run
     from viewers.preview import OffscreenPreview
@@ -68,9 +66,6 @@ def preview_gap(run_dir: Path, asset_dir: Path, split: str = "test", every: int 
     with_labels = "semantic" in extras
     glb = asset_dir / "scene.glb"
     asset = load_glb(glb)
-    rays_scene = o3d.t.geometry.RaycastingScene()
-    rays_scene.add_triangles(o3d.core.Tensor(np.asarray(asset.vertices, np.float32)),
-                             o3d.core.Tensor(np.asarray(asset.faces, np.uint32)))
     extent = float(np.linalg.norm((run.train_scene.aabb[1] - run.train_scene.aabb[0]).numpy()))
     geo_p, geo_f, geo_n = np.zeros(3), np.zeros(3), np.zeros(3)
     cls_p, cls_f, cls_n = np.zeros(256), np.zeros(256), np.zeros(256)
@@ -84,10 +79,7 @@ def preview_gap(run_dir: Path, asset_dir: Path, split: str = "test", every: int 
             cam = PinholeCamera.from_cameras(sc.cameras, i, near=extent * 1e-3, far=extent * 10)
             shown = view.render(cam)
             preview = shown.to_float()
-            rays = generate_rays(sc.cameras, [i])
-            q = np.concatenate([rays.origins.numpy(), rays.directions.numpy()], -1).astype(np.float32)
-            depth = (rays_scene.cast_rays(o3d.core.Tensor(q))["t_hit"].numpy()
-                     * rays.z_scale.numpy()).reshape(gt.shape)
+            depth = mesh_depth_map(asset.vertices, asset.faces, sc.cameras, i)
             hole = ~shown.mask
             off = ~hole & ~(np.abs(depth - gt) <= DEPTH_TOLERANCE * np.maximum(gt, 1e-3))
             geo = np.where(hole, 0, np.where(off, 1, 2))

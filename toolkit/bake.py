@@ -237,15 +237,12 @@ def chart_consistent_normals(vertices: np.ndarray, faces: np.ndarray, normals: n
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces)
     out = np.array(normals, dtype=np.float32)
-    n = out.astype(np.float64)
     if not len(f):
         return out
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    length = np.linalg.norm(fn, axis=1, keepdims=True)
-    unit_fn = fn / np.maximum(length, 1e-30)  # degenerate faces: zero, never against
+    fn = _unit(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]))  # degenerate faces: zero, never against
     against = np.zeros(len(v), bool)
     for k in range(3):
-        against[f[(n[f[:, k]] * unit_fn).sum(1) < 0, k]] = True
+        against[f[(out[f[:, k]] * fn).sum(1) < 0, k]] = True
     if against.any():
         out[against] = compute_vertex_normals(v, f)[against]
     return out

@@ -60,6 +60,8 @@ __all__ = [
     "chamfer_distance",
     "fscore",
     "sample_mesh_surface",
+    "mesh_depth_map",
+    "mesh_depth_error",
     "mean_iou",
 ]
 
@@ -953,6 +955,36 @@ def sample_mesh_surface(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor
     return torch.from_numpy(pts)
 
 
+def mesh_depth_map(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor | np.ndarray, cameras,
+                   index: int) -> np.ndarray:
+    """Depth of a triangle mesh seen from a camera: every pixel's ray cast against it (Open3D's CPU ray caster).
+
+    Args:
+        vertices: float [V, 3] world positions (metres, the scene's frame).
+        faces: int [F, 3].
+        cameras: :class:`toolkit.scene.Cameras`.
+        index: which camera.
+
+    Returns:
+        float [H, W] metres along the optical axis; inf where the ray misses the mesh.
+    """
+    import open3d as o3d
+
+    from .cameras import generate_rays
+
+    v = vertices.detach().cpu().numpy() if isinstance(vertices, torch.Tensor) else np.asarray(vertices)
+    f = faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)
+    check_shape(v, "V 3", "vertices")
+    check_shape(f, "F 3", "faces")
+    h, w = int(cameras.height[index]), int(cameras.width[index])
+    rays = generate_rays(cameras, [index])
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    q = np.concatenate([rays.origins.cpu().numpy(), rays.directions.cpu().numpy()], -1).astype(np.float32)
+    t_hit = scene.cast_rays(o3d.core.Tensor(q))["t_hit"].numpy()
+    return (t_hit * rays.z_scale.cpu().numpy()).reshape(h, w)
+
+
 def mesh_depth_error(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor | np.ndarray, cameras, index: int,
                      gt_depth: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, float]:
     """Depth error of a triangle mesh seen from a camera against a ground-truth depth map.
@@ -972,22 +1004,9 @@ def mesh_depth_error(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor | 
         ``{"median": m, "mean": m, "p90": m, "coverage": fraction of scored GT pixels the mesh covers,
         "pixels": n}`` (errors in metres; NaN when the mesh covers no scored pixel).
     """
-    import open3d as o3d
-
-    from .cameras import generate_rays
-
-    v = vertices.detach().cpu().numpy() if isinstance(vertices, torch.Tensor) else np.asarray(vertices)
-    f = faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)
-    check_shape(v, "V 3", "vertices")
-    check_shape(f, "F 3", "faces")
     h, w = int(cameras.height[index]), int(cameras.width[index])
     check_shape(gt_depth, f"{h} {w}", "gt_depth")
-    rays = generate_rays(cameras, [index])
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
-    q = np.concatenate([rays.origins.cpu().numpy(), rays.directions.cpu().numpy()], -1).astype(np.float32)
-    t_hit = scene.cast_rays(o3d.core.Tensor(q))["t_hit"].numpy()
-    depth = t_hit * rays.z_scale.cpu().numpy()
+    depth = mesh_depth_map(vertices, faces, cameras, index).reshape(-1)
     gt = gt_depth.detach().cpu().numpy().reshape(-1)
     valid = gt > 0
     if mask is not None:
