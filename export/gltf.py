@@ -35,7 +35,9 @@ Conventions (fixed; ``tests/test_gltf.py`` checks each):
 * **Backdrop.** ``dars export-asset`` adds a backdrop (what the viewers draw where the mesh is not — a gallery's
   sky, the white behind an object, holes in the mesh — from the field's renders) in the root ``extras.dars.backdrop``: a lat-long map in our
   +z-up world frame, linear radiance and a per-texel visibility (:class:`toolkit.backdrop.Backdrop`, passed in
-  ``extras``); :func:`load_glb` reads it into :attr:`GltfAsset.backdrop`. Other glTF viewers ignore it.
+  ``extras``), and for a run with a room box a second map under its ``box`` key, projected on the box's confident
+  faces (:class:`toolkit.backdrop.BoxProjection`: a ray from the eye reads it where it leaves the box);
+  :func:`load_glb` reads it into :attr:`GltfAsset.backdrop`. Other glTF viewers ignore it.
 * **Light tint.** Textures with a ``light_tint`` (:class:`toolkit.bake.PBRTextures`: the colour of the field's
   per-point light, which the grey occlusion channel cannot hold) add a fourth texture, named in the root
   ``extras.dars.light_tint`` (``index``, ``scale``); ``dars view`` and the WebXR page multiply the shaded colour by

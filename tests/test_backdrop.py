@@ -2,6 +2,7 @@
 saw, and the moderngl preview draws it behind the mesh."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -317,3 +318,195 @@ def test_unseen_texels_take_the_nearest_seen_colour_and_keep_the_visible_backgro
     np.testing.assert_allclose(out[1, 2], (0.5, 0.0, 0.5))   # halfway: both reach it in the same ring
     assert np.isfinite(out).all() and out.shape == vals.shape
     np.testing.assert_array_equal(out[known], vals[known])   # known texels are kept
+
+
+# ---------------------------------------------------------------------------------------------- the box projection
+ROOM = dict(origin=np.zeros(3), axes=np.eye(3), lo=np.array([-2.0, -2.0, 0.0]), hi=np.array([2.0, 2.0, 3.0]))
+
+
+def _box(faces=(False, False, False, False, True, False)):
+    from toolkit.backdrop import BoxProjection
+
+    return BoxProjection(**ROOM, faces=np.array(faces), centre=np.array([0.0, 0.0, 1.5]))
+
+
+def _floor_colour(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """A floor whose linear colour changes across the room (rgb [..., 3])."""
+    return torch.stack([0.45 + 0.35 * torch.sin(1.5 * x), 0.45 + 0.35 * torch.cos(1.3 * y),
+                        0.3 + 0.1 * x.sign()], -1)
+
+
+SKY = torch.tensor([0.2, 0.5, 0.9])
+
+
+def _room_views(eyes, size: int = 24, f: float = 10.0):
+    """ViewMaps of cameras at ``eyes`` looking 45° down toward the room's centre, rendering the floor of ``ROOM``
+    (z = 0) in :func:`_floor_colour` and the sky where a ray goes up; nothing covered by a mesh."""
+    pins = [PinholeCamera(look_at(e, [0.3 * e[0], 0.3 * e[1], 0.0], up=(0.0, 0.0, 1.0)), f, f, size / 2, size / 2,
+                          size, size) for e in eyes]
+    cams = cameras_from_pinholes(pins)
+    rgb = []
+    for i in range(len(eyes)):
+        r = generate_rays(cams, [i])
+        d = r.directions / r.directions.norm(dim=-1, keepdim=True)
+        t = -r.origins[:, 2] / d[:, 2].clamp(max=-1e-6)
+        p = r.origins + t[:, None] * d
+        rgb.append(torch.where((d[:, 2] < 0)[:, None], _floor_colour(p[:, 0], p[:, 1]), SKY).reshape(size, size, 3))
+    v = len(eyes)
+    return ViewMaps(cams, torch.ones(v, size, size), torch.ones(v, size, size), {"rgb": torch.stack(rgb).float()})
+
+
+def test_box_projection_keys_a_ray_by_where_it_leaves_the_box():
+    box = _box((True, True, True, True, True, False))
+    o = torch.tensor([[0.0, 0.0, 1.0], [1.0, 1.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -2.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    keys, on = box.keys(o, d)
+    assert on.tolist() == [True, True, True, False]   # the ceiling is not a face of the projection
+    # straight down from (1, 1, 1) leaves by the floor at (1, 1, 0): seen from the centre (0, 0, 1.5)
+    torch.testing.assert_close(keys[1], torch.nn.functional.normalize(torch.tensor([1.0, 1.0, -1.5]), dim=0))
+    torch.testing.assert_close(keys[2], torch.nn.functional.normalize(torch.tensor([2.0, 0.0, -0.5]), dim=0))
+    torch.testing.assert_close(keys[3], torch.tensor([0.0, 0.0, 1.0]))  # off the box's faces: the direction
+    from toolkit.layout import RoomLayout
+
+    layout = RoomLayout(origin=np.array([0.0, 0.0, 1.0]), axes=np.eye(3), lo=np.array([-2.0, -2.0, -1.0]),
+                        hi=np.array([2.0, 2.0, 2.0]), confident=np.array([False] * 4 + [True, False]),
+                        contrast=np.zeros(6), coverage=np.zeros(6))
+    from toolkit.backdrop import BoxProjection
+
+    p = BoxProjection.from_layout(layout)
+    np.testing.assert_allclose(p.centre, [0.0, 0.0, 1.5]) and np.testing.assert_array_equal(p.faces, _box().faces)
+    layout.confident[:] = False
+    assert BoxProjection.from_layout(layout) is None
+    with pytest.raises(SceneError, match="must exceed lo"):
+        BoxProjection(**{**ROOM, "hi": np.array([2.0, -3.0, 3.0])}, faces=np.ones(6, bool), centre=np.zeros(3))
+
+
+def test_box_map_shows_the_floor_behind_a_hole_from_where_the_camera_stands():
+    """Through a hole in the mesh a new camera sees the floor: the box map gives the colour of that patch of floor,
+    the direction map only the mean of what the training cameras saw in that direction."""
+    ring = [[2.0 * math.cos(a), 2.0 * math.sin(a), h] for a in np.linspace(0, 2 * math.pi, 12, endpoint=False)
+            for h in (1.2, 2.0)]
+    ring = [[0.8 * x, 0.8 * y, z] for x, y, z in ring] + [[0.3 * x, 0.3 * y, z] for x, y, z in ring[::3]]
+    views = _room_views(ring)
+    covered = torch.zeros(views.opacity.shape, dtype=torch.bool)
+    bg = Background("constant")
+    far = backdrop_from_views(bg.radiance_map(), views, covered)
+    bd = backdrop_from_views(bg.radiance_map(), views, covered, box=_box())
+    assert far.box is None and bd.box is not None and bd.box_radiance.shape == (64, 128, 3)
+    assert bd.box_weight.mean() > 0.9
+    test = _room_views([[0.7, -0.9, 1.6], [-1.1, 0.4, 1.0]])
+    err_far, err_box, n = 0.0, 0.0, 0
+    for i in range(2):
+        r = generate_rays(test.cameras, [i])
+        d = r.directions / r.directions.norm(dim=-1, keepdim=True)
+        floor = d[:, 2] < -0.2
+        truth = test.values["rgb"][i].reshape(-1, 3)[floor]
+        err_far += float(((far.sample(d[floor])[0] - truth) ** 2).sum())
+        rad, vis = bd.sample(d[floor], r.origins[floor])
+        assert float(vis.min()) == pytest.approx(1.0)
+        err_box += float(((rad - truth) ** 2).sum())
+        n += int(floor.sum())
+    assert err_box < 0.25 * err_far, f"box map MSE {err_box / n:.5f} against the direction map's {err_far / n:.5f}"
+    # sky rays leave by the ceiling, no face of the projection: the direction map, as without the box
+    up = torch.tensor([[0.1, 0.2, 1.0], [-0.3, 0.1, 0.8]])
+    eyes = torch.tensor([[0.5, 0.5, 1.5], [-1.0, 0.0, 1.0]])
+    torch.testing.assert_close(bd.sample(up / up.norm(dim=-1, keepdim=True), eyes)[0],
+                               far.sample(up / up.norm(dim=-1, keepdim=True))[0])
+
+
+def test_box_map_weight_keeps_the_direction_map_where_it_explains_the_pixels_better():
+    """Sky seen through the box's wall (a room with a low wall): the box map cannot hold what lies at infinity, so
+    its weight drops to 0 there and the viewer keeps the direction map."""
+    from toolkit.backdrop import BoxProjection
+
+    ring = [[1.5 * math.cos(a), 1.5 * math.sin(a), 1.5] for a in np.linspace(0, 2 * math.pi, 16, endpoint=False)]
+    size, f = 24, 8.0
+    pins = [PinholeCamera(look_at(e, [-3 * e[0], -3 * e[1], 3.5], up=(0.0, 0.0, 1.0)), f, f, size / 2, size / 2,
+                          size, size) for e in ring]
+    cams = cameras_from_pinholes(pins)
+    rgb = []
+    for i in range(len(ring)):  # a sky that changes with the direction only (at infinity)
+        d = generate_rays(cams, [i]).directions
+        d = d / d.norm(dim=-1, keepdim=True)
+        rgb.append(torch.stack([0.5 + 0.4 * d[:, 0], 0.5 + 0.4 * d[:, 1], 0.4 + 0.5 * d[:, 2]], -1).reshape(size, size, 3))
+    views = ViewMaps(cams, torch.ones(len(ring), size, size), torch.ones(len(ring), size, size),
+                     {"rgb": torch.stack(rgb).float()})
+    walls = BoxProjection(**ROOM, faces=np.array([True] * 4 + [False, False]), centre=np.array([0.0, 0.0, 1.5]))
+    covered = torch.zeros(views.opacity.shape, dtype=torch.bool)
+    bd = backdrop_from_views(Background("constant").radiance_map(), views, covered, box=walls)
+    keys = torch.cat([walls.keys(generate_rays(cams, [i]).origins, generate_rays(cams, [i]).directions)[0]
+                      for i in range(len(ring))])
+    from toolkit.backdrop import _texel_of
+
+    seen = torch.unique(_texel_of(keys, 64, 128))
+    assert float(bd.box_weight.reshape(-1)[seen].mean()) < 0.5  # the direction map wins where the sky was seen
+
+
+def test_box_backdrop_json_round_trip(tmp_path):
+    bd = Backdrop(RNG.uniform(0, 3, (4, 8, 3)), np.ones((4, 8)), _box(), RNG.uniform(0, 2, (6, 12, 3)),
+                  RNG.uniform(0, 1, (6, 12)))
+    back = Backdrop.from_json(json.loads(json.dumps(bd.to_json())))
+    np.testing.assert_allclose(back.box_radiance, bd.box_radiance, atol=1e-6)
+    np.testing.assert_allclose(back.box_weight, bd.box_weight, atol=1e-4)
+    np.testing.assert_array_equal(back.box.faces, bd.box.faces)
+    np.testing.assert_allclose(back.box.centre, bd.box.centre)
+    bad = bd.to_json()
+    bad["box"]["weight"] = bad["box"]["weight"][:-1]
+    with pytest.raises(SceneError, match="box: .* weight values"):
+        Backdrop.from_json(bad)
+    del bad["box"]["lo"]
+    with pytest.raises(SceneError, match="not a box projection"):
+        Backdrop.from_json(bad)
+    with pytest.raises(ShapeError, match="come together"):
+        Backdrop(bd.radiance, bd.visibility, _box())
+
+
+def test_preview_draws_the_box_map_where_a_ray_leaves_by_a_keyed_face(gl, tmp_path):
+    from viewers.preview import OffscreenPreview
+
+    bd = Backdrop(RNG.uniform(0, 1.2, (8, 16, 3)), RNG.uniform(0, 1, (8, 16)),
+                  _box((True, False, True, True, True, False)), RNG.uniform(0, 1.2, (16, 32, 3)),
+                  RNG.uniform(0, 1, (16, 32)))
+    glb = textured_cube(tmp_path / "cube.glb", extras={"backdrop": bd.to_json()})
+    loaded = load_glb(glb).backdrop
+    assert loaded.box is not None
+    for eye in ([1.4, -1.7, 1.3], [-1.2, 1.5, 2.5]):
+        cam = PinholeCamera(look_at(eye, [0, 0, 0.5]), 60.0, 60.0, 80.0, 60.0, 160, 120)
+        c = cameras_from_pinholes([cam])
+        r = generate_rays(c, [0])
+        d = (r.directions / r.directions.norm(dim=-1, keepdim=True)).double()
+        rad, vis = loaded.sample(d, r.origins.double())
+        sky = eval_sh(torch.as_tensor(CUBE_SH), d).clamp_min(0.0)
+        expected = linear_to_srgb((vis[:, None] * rad + (1 - vis[:, None]) * sky).clamp(0, 1)).reshape(120, 160, 3)
+        expected = np.round(expected.numpy() * 255)
+        _, on = loaded.box.keys(r.origins, r.directions)
+        with OffscreenPreview(glb, ctx=gl) as view:
+            shown = view.render(cam)
+        miss = ~shown.mask
+        assert on.reshape(120, 160)[miss].float().mean() > 0.3  # the box map is drawn on much of the background
+        err = np.abs(shown.image.astype(float) - expected)[miss]
+        assert np.quantile(err, 0.99) <= 3 and err.mean() < 0.5, f"box backdrop off by {err.max()}/255 (mean {err.mean():.2f})"
+
+
+def test_build_asset_projects_the_backdrop_on_the_room_box_when_the_run_has_one():
+    from toolkit.layout import RoomLayout
+
+    field = _sphere_field([])
+    plain = field.views
+
+    def views(cams):
+        m = plain(cams)
+        m.values["rgb"] = torch.full((*m.opacity.shape, 3), 0.3)
+        return m
+
+    layout = RoomLayout(origin=np.zeros(3), axes=np.eye(3), lo=np.full(3, -3.0), hi=np.full(3, 3.0),
+                        confident=np.array([True, True, False, True, True, False]), contrast=np.zeros(6),
+                        coverage=np.zeros(6))
+    cfg = AssetConfig(method="mc", resolution=32, faces=600, texture=64, level=100.0)
+    asset = build_asset(field._replace(views=views, room_layout=layout), cfg)
+    assert asset.backdrop.box is not None and asset.backdrop.box_radiance.shape == (64, 128, 3)
+    assert asset.stats["backdrop"]["box"]["faces"] == ["-a", "+a", "+b", "floor"]
+    assert "box" in asset.gltf_extras()["backdrop"]
+    off = build_asset(field._replace(views=views, room_layout=layout), AssetConfig(**{**cfg.__dict__,
+                                                                                      "backdrop_box": False}))
+    assert off.backdrop.box is None and "box" not in off.stats["backdrop"]

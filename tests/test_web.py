@@ -203,16 +203,23 @@ def _site(glb, out):
         raise
 
 
-def test_page_draws_the_backdrop_like_dars_view(serve, tmp_path):
+@pytest.mark.parametrize("with_box", [False, True])
+def test_page_draws_the_backdrop_like_dars_view(serve, tmp_path, with_box):
     """A GLB with a backdrop (toolkit.backdrop): the page draws it behind the model, blended with the SH radiance by
     its visibility, as ``dars view`` does (a half-float texture there, float32 here). Its occlusion channel (0.6)
-    darkens the model's SH lighting and its light_scale (1.5) the sky's SH on the page as in ``dars view``."""
-    from toolkit.backdrop import Backdrop
+    darkens the model's SH lighting and its light_scale (1.5) the sky's SH on the page as in ``dars view``. With a
+    box map (``with_box``), the page keys it by where each ray from its eye leaves the box, as ``dars view``."""
+    from toolkit.backdrop import Backdrop, BoxProjection
     from viewers.preview import PreviewConfig, render_preview
     from viewers.web import WebConfig, export_web, view_camera_from_web
 
     rng = np.random.default_rng(8)
-    bd = Backdrop(rng.uniform(0, 1.2, (8, 16, 3)), rng.uniform(0, 1, (8, 16)))
+    box = {}
+    if with_box:
+        proj = BoxProjection(np.zeros(3), np.eye(3), np.array([-2.5, -2.0, -1.0]), np.array([2.0, 2.5, 3.0]),
+                             np.array([True, True, False, True, True, False]), np.array([0.1, 0.0, 0.5]))
+        box = dict(box=proj, box_radiance=rng.uniform(0, 1.2, (16, 32, 3)), box_weight=rng.uniform(0, 1, (16, 32)))
+    bd = Backdrop(rng.uniform(0, 1.2, (8, 16, 3)), rng.uniform(0, 1, (8, 16)), **box)
     glb = textured_cube(tmp_path / "cube.glb", extras={"backdrop": bd.to_json(), "light_scale": 1.5}, occlusion=0.6)
     site = _site(glb, tmp_path / "site")
     light = json.loads(site.light_json.read_text())

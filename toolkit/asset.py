@@ -140,6 +140,11 @@ class AssetConfig:
     gallery's sky, the white behind an object, the holes in the mesh): the field's rendered colour in the directions
     where the mesh leaves training pixels uncovered, elsewhere its learned background weighted by how much of it the
     training renders saw. Needs the renders of ``bake_from="views"`` (rendered for it alone with ``points``)."""
+    backdrop_box: bool = True
+    """With ``backdrop`` and a run with a room box (``room_layout``): also a backdrop map projected on the box's
+    confident faces (:class:`toolkit.backdrop.BoxProjection`), so that a floor or wall seen through a hole in the
+    mesh shows the colour of that place rather than the mean of everything seen in that direction. Off: the
+    direction map alone (the GLB of earlier versions)."""
     viewer_fit: int = 1
     """With ``light_fit``: after the bake, render the GLB with our viewer at the views it was baked from, fit one
     RGB light factor per mesh vertex that brings what the viewer shows to the field's colour there
@@ -408,12 +413,14 @@ def build_backdrop(field: FieldCallables, views, cfg: AssetConfig = AssetConfig(
     field's colour wherever the mesh leaves a training pixel uncovered (:func:`toolkit.backdrop.backdrop_from_views`)."""
     if not _wants_backdrop(field, cfg) or views is None:
         return None
-    from .backdrop import backdrop_from_views, mesh_coverage
+    from .backdrop import BoxProjection, backdrop_from_views, mesh_coverage
 
     covered = None
     if mesh is not None and "rgb" in views.values:
         covered = mesh_coverage(mesh.vertices, mesh.faces, views.cameras)
-    return backdrop_from_views(field.background, views, covered)
+    layout = getattr(field, "room_layout", None)
+    box = BoxProjection.from_layout(layout) if cfg.backdrop_box and layout is not None else None
+    return backdrop_from_views(field.background, views, covered, box=box)
 
 
 LIGHT_SCALE_QUANTILE = 0.99
@@ -635,10 +642,17 @@ def build_asset(run: str | Path | Run | FieldCallables, cfg: AssetConfig = Asset
     stats["bake"] = bake_stats
     backdrop = build_backdrop(field, maps, cfg, uvmesh)
     if backdrop is not None:
+        from .layout import FACE_NAMES
+
         vis = backdrop.visibility
         stats["backdrop"] = {"height": backdrop.shape[0], "width": backdrop.shape[1],
                              "texels_seen": round(float((vis > 0).mean()), 4),
                              "mean_visibility": round(float(vis.mean()), 4)}
+        if backdrop.box is not None:
+            stats["backdrop"]["box"] = {"height": int(backdrop.box_weight.shape[0]),
+                                        "width": int(backdrop.box_weight.shape[1]),
+                                        "faces": [n for n, f in zip(FACE_NAMES, backdrop.box.faces) if f],
+                                        "weight_mean": round(float(backdrop.box_weight.mean()), 4)}
     return Asset(mesh, uvmesh, textures, _glb_sh(field.sh, bake_stats), stats, backdrop)
 
 

@@ -19,7 +19,9 @@ The fragment shader calls ``dars_shade_pbr``, generated from :mod:`toolkit.shadi
   ``semantics`` = :data:`toolkit.visualise.LABEL_COLOURS` per semantic primitive (unlabelled black). Background in
   ``lit`` mode: the GLB's backdrop where it has one and the light is its own (:mod:`toolkit.backdrop`: the field's
   colour where the mesh left training pixels uncovered, else its learned background, blended per direction with the
-  SH radiance by its visibility — ``visibility · backdrop + (1 − visibility) · SH``), else the SH environment's
+  SH radiance by its visibility — ``visibility · backdrop + (1 − visibility) · SH``; where it has a box map, a ray
+  that leaves the room's box through one of its faces reads that map at its exit point, mixed over by its weight:
+  :class:`toolkit.backdrop.BoxProjection`), else the SH environment's
   radiance along each view ray (divided by the GLB's ``extras.dars.light_scale``: its SH lights the mesh at that
   multiple of the run's light, whose occlusion channel divides it back, :func:`viewers.lighting.light_scale`); a flat
   grey in the other modes. Alpha is 1 on the mesh, 0 elsewhere (the coverage mask of :class:`PreviewImage`).
@@ -253,20 +255,36 @@ uniform float u_exposure_scale;
 uniform bool u_use_sh;
 uniform bool u_use_backdrop;
 uniform sampler2D u_backdrop;     // lat-long (toolkit.backdrop): rgb linear radiance, a visibility
+uniform bool u_use_box;           // the backdrop's box map (toolkit.backdrop.BoxProjection)
+uniform sampler2D u_box_map;      // lat-long from the box's centre: rgb linear radiance, a weight
+uniform vec3 u_eye;               // the camera's position, world
+uniform mat3 u_box_axes;          // world -> box frame
+uniform vec3 u_box_origin;
+uniform vec3 u_box_lo;
+uniform vec3 u_box_hi;
+uniform vec3 u_box_centre;
+uniform vec3 u_box_face_lo;       // 1 where the low face along that axis keys the box map
+uniform vec3 u_box_face_hi;
 uniform vec3 u_colour;
 in vec2 v_ndc;
 out vec4 out_colour;
-const float PI = 3.14159265358979;
 void main() {
     if (!u_use_sh) { out_colour = vec4(u_colour, 0.0); return; }
     vec4 a = u_inv_view_proj * vec4(v_ndc, -1.0, 1.0);
     vec4 b = u_inv_view_proj * vec4(v_ndc, 1.0, 1.0);
     vec3 d = normalize(u_gltf_to_world * (b.xyz / b.w - a.xyz / a.w));  // the light arriving from d
     vec3 radiance = max(dars_sh_eval(u_sh, dars_sh_basis(d)), vec3(0.0));
-    if (u_use_backdrop) {  // u = phi / 2 pi (repeats), v = theta / pi (clamps): toolkit.sh.lookup_latlong
-        float phi = mod(atan(d.x, d.y), 2.0 * PI);
-        vec4 bd = texture(u_backdrop, vec2(phi / (2.0 * PI), acos(clamp(d.z, -1.0, 1.0)) / PI));
+    if (u_use_backdrop) {
+        vec4 bd = texture(u_backdrop, dars_latlong_uv(d));
         radiance = mix(radiance, max(bd.rgb, vec3(0.0)), clamp(bd.a, 0.0, 1.0));
+        if (u_use_box) {  // where the ray leaves the box (toolkit.backdrop.BOX_CONVENTION)
+            vec4 key = dars_box_key(u_eye, d, u_box_axes, u_box_origin, u_box_lo, u_box_hi, u_box_face_lo,
+                                    u_box_face_hi, u_box_centre);
+            if (key.w > 0.5) {
+                vec4 bx = texture(u_box_map, dars_latlong_uv(key.xyz));
+                radiance = mix(radiance, max(bx.rgb, vec3(0.0)), clamp(bx.a, 0.0, 1.0));
+            }
+        }
     }
     out_colour = vec4(dars_linear_to_srgb(clamp(radiance * u_exposure_scale, 0.0, 1.0)), 0.0);
 }
@@ -370,6 +388,7 @@ class PreviewRenderer:
         self.dfg.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.dfg.repeat_x = self.dfg.repeat_y = False
         self.backdrop = self._backdrop_texture(asset.backdrop)
+        self.box_map = self._backdrop_texture(asset.backdrop, box=True)
         if sh is None:
             sh, _ = resolve_sh(asset)
         self.set_sh(sh)
@@ -399,14 +418,18 @@ class PreviewRenderer:
         tex.repeat_x = tex.repeat_y = False
         return tex
 
-    def _backdrop_texture(self, backdrop):
-        """RGBA float texture of the GLB's backdrop (rgb radiance, a visibility), or None."""
+    def _backdrop_texture(self, backdrop, box: bool = False):
+        """RGBA float texture of the GLB's backdrop (rgb radiance, a visibility), or of its box map (``box``: rgb
+        radiance, a weight), or None."""
         import moderngl
 
-        if backdrop is None:
+        if backdrop is None or (box and backdrop.box is None):
             return None
-        h, w = backdrop.shape
-        rgba = np.concatenate([backdrop.radiance, backdrop.visibility[..., None]], 2).astype(np.float32)
+        if box:
+            rgba = np.concatenate([backdrop.box_radiance, backdrop.box_weight[..., None]], 2).astype(np.float32)
+        else:
+            rgba = np.concatenate([backdrop.radiance, backdrop.visibility[..., None]], 2).astype(np.float32)
+        h, w = rgba.shape[:2]
         tex = self._keep(self.ctx.texture((w, h), 4, np.ascontiguousarray(rgba).tobytes(), dtype="f4"))
         tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
         tex.repeat_x, tex.repeat_y = True, False
@@ -478,6 +501,18 @@ class PreviewRenderer:
         if use_backdrop:
             self.backdrop.use(0)
             _set(bg, "u_backdrop", 0)
+        use_box = use_backdrop and self.box_map is not None
+        _set(bg, "u_use_box", use_box)
+        if use_box:
+            box = self.asset.backdrop.box
+            self.box_map.use(1)
+            _set(bg, "u_box_map", 1)
+            _set(bg, "u_eye", tuple(float(x) for x in np.asarray(camera.c2w, np.float64)[:3, 3]))
+            _write_mat(bg, "u_box_axes", box.axes)
+            for name, value in (("u_box_origin", box.origin), ("u_box_lo", box.lo), ("u_box_hi", box.hi),
+                                ("u_box_centre", box.centre), ("u_box_face_lo", box.faces[0::2].astype(float)),
+                                ("u_box_face_hi", box.faces[1::2].astype(float))):
+                _set(bg, name, tuple(float(x) for x in value))
         bg_vao.render(moderngl.TRIANGLES)
 
         ctx.enable(moderngl.DEPTH_TEST)

@@ -136,6 +136,27 @@ vec3 dars_specular_radiance(vec3 sh[9], vec3 n, vec3 v, float roughness) {{
     for (int k = 0; k < 9; ++k) y_r[k] *= g[k];
     return dars_clamp_light(dars_sh_eval(sh, y_r));
 }}
+
+// a lat-long map's (u, v) of a unit direction: u = phi / 2 pi (repeats), v = theta / pi (toolkit.sh.lookup_latlong)
+vec2 dars_latlong_uv(vec3 d) {{
+    return vec2(mod(atan(d.x, d.y), 2.0 * DARS_PI) / (2.0 * DARS_PI), acos(clamp(d.z, -1.0, 1.0)) / DARS_PI);
+}}
+
+// toolkit.backdrop.BOX_CONVENTION: where the ray from eye along d (world, unit) leaves the box {{origin + axes^T q,
+// lo <= q <= hi}} (axes: world -> box frame). xyz: the box map's direction (from centre to the exit point); w: 1
+// when the ray leaves through a face of the projection (face_lo / face_hi: 1 per axis), else 0.
+vec4 dars_box_key(vec3 eye, vec3 d, mat3 axes, vec3 origin, vec3 lo, vec3 hi, vec3 face_lo, vec3 face_hi,
+                  vec3 centre) {{
+    vec3 o = axes * (eye - origin);
+    vec3 q = axes * d;
+    vec3 pos = step(0.0, q) * step(1e-12, abs(q));
+    vec3 t = (mix(lo, hi, pos) - o) / mix(vec3(1e-12), q, step(1e-12, abs(q)));
+    t = vec3(t.x > 0.0 ? t.x : 1e30, t.y > 0.0 ? t.y : 1e30, t.z > 0.0 ? t.z : 1e30);  // no mix: 1e30 cancels
+    float tm = min(t.x, min(t.y, t.z));
+    vec3 pick = t.x == tm ? vec3(1.0, 0.0, 0.0) : (t.y == tm ? vec3(0.0, 1.0, 0.0) : vec3(0.0, 0.0, 1.0));
+    float keyed = dot(pick, mix(face_lo, face_hi, pos)) > 0.5 && tm < 1e29 ? 1.0 : 0.0;
+    return vec4(normalize(eye + tm * d - centre), keyed);
+}}
 """
 
 

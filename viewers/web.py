@@ -15,7 +15,8 @@ from :func:`toolkit.sh.sh_to_threejs_lightprobe` (our radiance SH rotated into t
 ``sh_world`` — the SPEC coefficients [9, 3] (+z up, for reference); ``exposure`` (stops); ``background``
 (``"sh"``, ``"backdrop"`` or an sRGB triple); ``backdrop`` — the GLB's backdrop when drawn
 (:meth:`toolkit.backdrop.Backdrop.to_json`, uploaded as a half-float lat-long texture and blended with the SH
-radiance by its visibility, as ``dars view``); ``sky_scale`` — what the sky's SH radiance is multiplied by (1 / the
+radiance by its visibility, as ``dars view``; its box map, where it has one, is read where the ray from the eye
+leaves the room's box); ``sky_scale`` — what the sky's SH radiance is multiplied by (1 / the
 GLB's ``extras.dars.light_scale``, :func:`viewers.lighting.light_scale`); ``gltf_to_world`` (row-major 3×3: three's
 frame to the dars world, where the backdrop lives); ``camera`` (three/glTF frame: ``position``, ``target``,
 ``fov_y_deg``, ``near``, ``far``);

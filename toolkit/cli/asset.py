@@ -107,6 +107,10 @@ def add_bake_options(q: argparse.ArgumentParser, backdrop: bool = True) -> None:
         q.add_argument("--no-backdrop", dest="backdrop", action="store_false",
                        help="store no backdrop in the GLB (what the viewers draw where the mesh is not — a gallery's "
                             "sky, the white behind an object, holes in the mesh — taken from the field's renders)")
+        q.add_argument("--no-backdrop-box", dest="backdrop_box", action="store_false",
+                       help="keep the backdrop at infinity (one map keyed by direction) instead of also projecting "
+                            "it on the room box's confident faces, where a hole in the mesh shows the floor or wall "
+                            "behind it from where the camera stands")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -150,7 +154,7 @@ def asset_config(args: argparse.Namespace):
     names = ("method", "resolution", "level", "level_quantile", "faces", "simplify", "min_component", "min_seen",
              "keep_unseen", "snap_layout", "depth_samples", "depth_min_opacity", "depth_rays", "texture", "supersample",
              "ao_samples", "bake_from", "view_rays", "normals_from", "view_tolerance", "light_occlusion", "light_tint",
-             "light_fit", "viewer_fit", "backdrop", "device")
+             "light_fit", "viewer_fit", "backdrop", "backdrop_box", "device")
     return AssetConfig(**{k: getattr(args, k) for k in names if hasattr(args, k)})
 
 

@@ -150,8 +150,7 @@ function useDarsShading(material, tint) {
 
 // The backdrop (toolkit.backdrop): what the field drew where the mesh is not, as a lat-long half-float texture, rgb
 // linear radiance and the visibility, in the dars world frame (+z up); rows clamp, columns wrap, linear filtering.
-function backdropTexture(backdrop) {
-  const { width, height, radiance, visibility } = backdrop;
+function backdropTexture({ width, height, radiance, visibility }) {
   const data = new Uint16Array(width * height * 4);
   for (let i = 0; i < width * height; i++) {
     for (let c = 0; c < 3; c++) data[4 * i + c] = THREE.DataUtils.toHalfFloat(radiance[3 * i + c]);
@@ -174,12 +173,28 @@ function backdropTexture(backdrop) {
 function makeSky(coefficients, backdrop, gltfToWorld) {
   const toWorld = new THREE.Matrix3();
   if (gltfToWorld) toWorld.set(...gltfToWorld.flat());
+  // the box map (toolkit.backdrop.BoxProjection): keyed by where a ray from the eye leaves the room's box
+  const box = backdrop && backdrop.box ? backdrop.box : null;
+  const boxAxes = new THREE.Matrix3();
+  if (box) boxAxes.set(...box.axes.flat());  // rows: world -> box frame
+  const faces = box ? box.faces.map((f) => (f ? 1 : 0)) : [0, 0, 0, 0, 0, 0];
+  const v3 = (a) => new THREE.Vector3().fromArray(a || [0, 0, 0]);
   const material = new THREE.ShaderMaterial({
     uniforms: {
       sh: { value: coefficients.map((c) => c.clone()) },
       useBackdrop: { value: !!backdrop },
       backdrop: { value: backdrop ? backdropTexture(backdrop) : null },
       gltfToWorld: { value: toWorld },
+      useBox: { value: !!box },
+      boxMap: { value: box ? backdropTexture({ width: box.width, height: box.height, radiance: box.radiance,
+        visibility: box.weight }) : null },
+      boxAxes: { value: boxAxes },
+      boxOrigin: { value: v3(box && box.origin) },
+      boxLo: { value: v3(box && box.lo) },
+      boxHi: { value: v3(box && box.hi) },
+      boxCentre: { value: v3(box && box.centre) },
+      boxFaceLo: { value: new THREE.Vector3(faces[0], faces[2], faces[4]) },
+      boxFaceHi: { value: new THREE.Vector3(faces[1], faces[3], faces[5]) },
     },
     vertexShader: /* glsl */`
       varying vec3 vDir;
@@ -193,16 +208,31 @@ function makeSky(coefficients, backdrop, gltfToWorld) {
       uniform bool useBackdrop;
       uniform sampler2D backdrop;
       uniform mat3 gltfToWorld;
+      uniform bool useBox;
+      uniform sampler2D boxMap;
+      uniform mat3 boxAxes;
+      uniform vec3 boxOrigin;
+      uniform vec3 boxLo;
+      uniform vec3 boxHi;
+      uniform vec3 boxCentre;
+      uniform vec3 boxFaceLo;
+      uniform vec3 boxFaceHi;
       varying vec3 vDir;
       ${DARS_SHADING_GLSL}
       void main() {
         vec3 radiance = max( dars_sh_eval( sh, dars_sh_basis( normalize( vDir ) ) ), vec3( 0.0 ) );
-        if ( useBackdrop ) {  // u = phi / 2 pi, v = theta / pi in the dars world (toolkit.sh.lookup_latlong)
+        if ( useBackdrop ) {
           vec3 d = normalize( gltfToWorld * vDir );
-          float phi = mod( atan( d.x, d.y ), 6.283185307179586 );
-          float theta = acos( clamp( d.z, -1.0, 1.0 ) );
-          vec4 bd = texture2D( backdrop, vec2( phi / 6.283185307179586, theta / 3.141592653589793 ) );
+          vec4 bd = texture2D( backdrop, dars_latlong_uv( d ) );
           radiance = mix( radiance, max( bd.rgb, vec3( 0.0 ) ), clamp( bd.a, 0.0, 1.0 ) );
+          if ( useBox ) {  // where the ray from the eye leaves the box (toolkit.backdrop.BOX_CONVENTION), as dars view
+            vec4 key = dars_box_key( gltfToWorld * cameraPosition, d, boxAxes, boxOrigin, boxLo, boxHi, boxFaceLo,
+              boxFaceHi, boxCentre );
+            if ( key.w > 0.5 ) {
+              vec4 bx = texture2D( boxMap, dars_latlong_uv( key.xyz ) );
+              radiance = mix( radiance, max( bx.rgb, vec3( 0.0 ) ), clamp( bx.a, 0.0, 1.0 ) );
+            }
+          }
         }
         gl_FragColor = vec4( radiance, 1.0 );
         #include <tonemapping_fragment>
