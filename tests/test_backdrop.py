@@ -366,6 +366,12 @@ def test_box_projection_keys_a_ray_by_where_it_leaves_the_box():
     torch.testing.assert_close(keys[1], torch.nn.functional.normalize(torch.tensor([1.0, 1.0, -1.5]), dim=0))
     torch.testing.assert_close(keys[2], torch.nn.functional.normalize(torch.tensor([2.0, 0.0, -0.5]), dim=0))
     torch.testing.assert_close(keys[3], torch.tensor([0.0, 0.0, 1.0]))  # off the box's faces: the direction
+    # an eye outside the box looks through it: the ray from (5, 0, 1) along -x leaves by -a at (-2, 0, 1); one that
+    # points away from the box, or passes beside it, is not on it
+    keys, on = box.keys(torch.tensor([[5.0, 0.0, 1.0], [5.0, 0.0, 1.0], [5.0, 3.0, 1.0]]),
+                        torch.tensor([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]))
+    assert on.tolist() == [True, False, False]
+    torch.testing.assert_close(keys[0], torch.nn.functional.normalize(torch.tensor([-2.0, 0.0, -0.5]), dim=0))
     from toolkit.layout import RoomLayout
 
     layout = RoomLayout(origin=np.array([0.0, 0.0, 1.0]), axes=np.eye(3), lo=np.array([-2.0, -2.0, -1.0]),
@@ -470,7 +476,7 @@ def test_preview_draws_the_box_map_where_a_ray_leaves_by_a_keyed_face(gl, tmp_pa
     glb = textured_cube(tmp_path / "cube.glb", extras={"backdrop": bd.to_json()})
     loaded = load_glb(glb).backdrop
     assert loaded.box is not None
-    for eye in ([1.4, -1.7, 1.3], [-1.2, 1.5, 2.5]):
+    for eye in ([1.4, -1.7, 1.3], [-1.2, 1.5, 2.5], [3.5, -3.0, 2.0]):  # the last outside the box
         cam = PinholeCamera(look_at(eye, [0, 0, 0.5]), 60.0, 60.0, 80.0, 60.0, 160, 120)
         c = cameras_from_pinholes([cam])
         r = generate_rays(c, [0])
@@ -483,7 +489,7 @@ def test_preview_draws_the_box_map_where_a_ray_leaves_by_a_keyed_face(gl, tmp_pa
         with OffscreenPreview(glb, ctx=gl) as view:
             shown = view.render(cam)
         miss = ~shown.mask
-        assert on.reshape(120, 160)[miss].float().mean() > 0.3  # the box map is drawn on much of the background
+        assert on.reshape(120, 160)[miss].float().mean() > 0.15  # the box map is drawn on part of the background
         err = np.abs(shown.image.astype(float) - expected)[miss]
         assert np.quantile(err, 0.99) <= 3 and err.mean() < 0.5, f"box backdrop off by {err.max()}/255 (mean {err.mean():.2f})"
 

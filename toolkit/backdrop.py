@@ -49,6 +49,7 @@ Example:
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -76,7 +77,8 @@ BOX_SHAPE = (64, 128)
 """Lat-long size of the box-projected map (:class:`BoxProjection`): a texel spans about 0.3 m of a 6 m room's wall."""
 
 BOX_CONVENTION = ("a ray from the eye o along d leaves the box {origin + axes^T q : lo <= q <= hi} (axes: rows, "
-                  "world) at p = o + t d, t > 0 least; when the face it leaves by (order -a, +a, -b, +b, floor, "
+                  "world) at p = o + t d, t the least of the slabs' far distances (the ray meets the box when it "
+                  "exceeds the greatest near distance and 0); when the face it leaves by (order -a, +a, -b, +b, floor, "
                   "ceiling: axis k = index // 2, hi when index is odd) is in faces, the box map is read in the "
                   "direction normalize(p - centre) (lat-long as the backdrop) and its rgb mixed over the "
                   "direction map's colour by its weight; otherwise the direction map alone")
@@ -131,19 +133,24 @@ class BoxProjection:
     def keys(self, origins: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(unit map directions float [R, 3], on_box bool [R]) of rays ``origins`` / ``directions`` (world, [R, 3];
         directions of any length): where each ray leaves the box, seen from :attr:`centre`, and whether it leaves
-        through one of :attr:`faces` (:data:`BOX_CONVENTION`)."""
-        from .layout import box_depth
-
+        through one of :attr:`faces` (:data:`BOX_CONVENTION`). An eye outside the box looks through it: the exit
+        is where the ray leaves it after entering; a ray that misses the box is not on it."""
         o = origins.double()
         d = directions.double()
         d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        t, face = box_depth(self, o, d)
-        finite = torch.isfinite(t)
-        on = finite & torch.from_numpy(self.faces).to(face.device)[face.clamp(0, 5)]
-        p = o + torch.where(finite, t, torch.zeros_like(t))[:, None] * d
-        k = p - torch.as_tensor(self.centre, dtype=p.dtype, device=p.device)
-        k = torch.where(on[:, None], k, d)
-        return (k / k.norm(dim=-1, keepdim=True).clamp_min(1e-12)).to(directions.dtype), on
+        as_t = functools.partial(torch.as_tensor, dtype=o.dtype, device=o.device)
+        axes = as_t(self.axes)
+        ob = (o - as_t(self.origin)) @ axes.T
+        q = d @ axes.T
+        q = torch.where(q.abs() < 1e-12, torch.full_like(q, 1e-12), q)
+        t1, t2 = (as_t(self.lo) - ob) / q, (as_t(self.hi) - ob) / q      # the slabs
+        t_far, k = torch.maximum(t1, t2).min(-1)
+        t_near = torch.minimum(t1, t2).max(-1).values
+        face = 2 * k + torch.gather((q > 0).long(), -1, k[..., None])[..., 0]
+        on = (t_far > t_near.clamp_min(0.0)) & torch.from_numpy(self.faces).to(face.device)[face]
+        p = o + torch.where(on, t_far, torch.zeros_like(t_far))[:, None] * d
+        key = torch.where(on[:, None], p - as_t(self.centre), d)
+        return (key / key.norm(dim=-1, keepdim=True).clamp_min(1e-12)).to(directions.dtype), on
 
     def to_json(self) -> dict:
         return {"convention": BOX_CONVENTION, "origin": self.origin.tolist(), "axes": self.axes.tolist(),

@@ -149,13 +149,17 @@ vec4 dars_box_key(vec3 eye, vec3 d, mat3 axes, vec3 origin, vec3 lo, vec3 hi, ve
                   vec3 centre) {{
     vec3 o = axes * (eye - origin);
     vec3 q = axes * d;
-    vec3 pos = step(0.0, q) * step(1e-12, abs(q));
-    vec3 t = (mix(lo, hi, pos) - o) / mix(vec3(1e-12), q, step(1e-12, abs(q)));
-    t = vec3(t.x > 0.0 ? t.x : 1e30, t.y > 0.0 ? t.y : 1e30, t.z > 0.0 ? t.z : 1e30);  // no mix: 1e30 cancels
-    float tm = min(t.x, min(t.y, t.z));
-    vec3 pick = t.x == tm ? vec3(1.0, 0.0, 0.0) : (t.y == tm ? vec3(0.0, 1.0, 0.0) : vec3(0.0, 0.0, 1.0));
-    float keyed = dot(pick, mix(face_lo, face_hi, pos)) > 0.5 && tm < 1e29 ? 1.0 : 0.0;
-    return vec4(normalize(eye + tm * d - centre), keyed);
+    q = vec3(abs(q.x) < 1e-12 ? 1e-12 : q.x, abs(q.y) < 1e-12 ? 1e-12 : q.y, abs(q.z) < 1e-12 ? 1e-12 : q.z);
+    vec3 t1 = (lo - o) / q;
+    vec3 t2 = (hi - o) / q;                             // the slabs: an eye outside the box looks through it
+    vec3 t_max = max(t1, t2);
+    vec3 t_min = min(t1, t2);
+    float t_far = min(t_max.x, min(t_max.y, t_max.z));
+    float t_near = max(t_min.x, max(t_min.y, t_min.z));
+    vec3 pick = t_max.x == t_far ? vec3(1.0, 0.0, 0.0) : (t_max.y == t_far ? vec3(0.0, 1.0, 0.0) : vec3(0.0, 0.0, 1.0));
+    vec3 pos = vec3(greaterThan(q, vec3(0.0)));
+    float keyed = dot(pick, mix(face_lo, face_hi, pos)) > 0.5 && t_far > max(t_near, 0.0) ? 1.0 : 0.0;
+    return vec4(normalize(eye + t_far * d - centre), keyed);
 }}
 """
 
