@@ -186,46 +186,39 @@ class Backdrop:
     box_weight: np.ndarray | None = None
 
     def __post_init__(self):
-        r, v = np.asarray(self.radiance), np.asarray(self.visibility)
-        if r.ndim != 3 or r.shape[2] != 3 or r.shape[0] < 1 or r.shape[1] < 1:
-            raise ShapeError(f"Backdrop.radiance has shape {r.shape}; expected [h, w, 3]")
-        if v.shape != r.shape[:2]:
-            raise ShapeError(f"Backdrop.visibility has shape {v.shape}; expected {r.shape[:2]} like the radiance")
-        if not (np.isfinite(r).all() and np.isfinite(v).all()):
-            raise SceneError("Backdrop: non-finite radiance or visibility")
-        object.__setattr__(self, "radiance", np.ascontiguousarray(np.clip(r, 0.0, None), np.float32))
-        object.__setattr__(self, "visibility", np.ascontiguousarray(np.clip(v, 0.0, 1.0), np.float32))
+        r, v = _checked_map(self.radiance, self.visibility, "radiance", "visibility")
+        object.__setattr__(self, "radiance", r)
+        object.__setattr__(self, "visibility", v)
         parts = (self.box is None, self.box_radiance is None, self.box_weight is None)
         if len(set(parts)) != 1:
             raise ShapeError("Backdrop: box, box_radiance and box_weight come together (all or none)")
         if self.box is not None:
-            br, bw = np.asarray(self.box_radiance), np.asarray(self.box_weight)
-            if br.ndim != 3 or br.shape[2] != 3 or br.shape[0] < 1 or br.shape[1] < 1 or bw.shape != br.shape[:2]:
-                raise ShapeError(f"Backdrop: box_radiance {br.shape} and box_weight {bw.shape}; expected [h, w, 3] "
-                                 "and [h, w]")
-            if not (np.isfinite(br).all() and np.isfinite(bw).all()):
-                raise SceneError("Backdrop: non-finite box radiance or weight")
-            object.__setattr__(self, "box_radiance", np.ascontiguousarray(np.clip(br, 0.0, None), np.float32))
-            object.__setattr__(self, "box_weight", np.ascontiguousarray(np.clip(bw, 0.0, 1.0), np.float32))
+            br, bw = _checked_map(self.box_radiance, self.box_weight, "box_radiance", "box_weight")
+            object.__setattr__(self, "box_radiance", br)
+            object.__setattr__(self, "box_weight", bw)
 
     @property
     def shape(self) -> tuple[int, int]:
         """(h, w)."""
         return int(self.radiance.shape[0]), int(self.radiance.shape[1])
 
+    def rgba(self, box: bool = False) -> np.ndarray:
+        """float32 [h, w, 4]: the direction map's radiance and visibility, or (``box``) the box map's radiance and
+        weight — as a viewer uploads them."""
+        rgb, alpha = (self.box_radiance, self.box_weight) if box else (self.radiance, self.visibility)
+        return np.ascontiguousarray(np.concatenate([rgb, alpha[..., None]], 2), np.float32)
+
     def sample(self, directions: torch.Tensor, origins: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(radiance [R, 3], visibility [R]) along unit world directions [R, 3], filtered as a viewer does; with the
         rays' ``origins`` (world [R, 3], the eye) and a box map, the box map mixed in where a ray leaves the box
         through one of its faces (:data:`BOX_CONVENTION`). A viewer draws ``visibility · radiance + (1 −
         visibility) · SH radiance``."""
-        both = torch.cat([torch.from_numpy(self.radiance), torch.from_numpy(self.visibility)[..., None]], -1)
-        v = lookup_latlong(both.to(directions), directions)
+        v = lookup_latlong(torch.from_numpy(self.rgba()).to(directions), directions)
         rad, vis = v[:, :3], v[:, 3]
         if self.box is None or origins is None:
             return rad, vis
         keys, on = self.box.keys(origins, directions)
-        box = torch.cat([torch.from_numpy(self.box_radiance), torch.from_numpy(self.box_weight)[..., None]], -1)
-        b = lookup_latlong(box.to(directions), keys)
+        b = lookup_latlong(torch.from_numpy(self.rgba(box=True)).to(directions), keys)
         w = torch.where(on, b[:, 3], torch.zeros_like(vis))
         # mix(mix(sky, far, vis), box, w) as one (radiance, visibility) pair
         vis_out = w + (1 - w) * vis
@@ -234,15 +227,9 @@ class Backdrop:
 
     def to_json(self) -> dict:
         """The GLB's ``extras.dars.backdrop`` (lossless to float32 within JSON's decimal digits)."""
-        h, w = self.shape
-        out = {"convention": CONVENTION, "height": h, "width": w,
-               "radiance": [round(float(x), 6) for x in self.radiance.reshape(-1)],
-               "visibility": [round(float(x), 4) for x in self.visibility.reshape(-1)]}
+        out = {"convention": CONVENTION, **_map_json(self.radiance, self.visibility, "visibility")}
         if self.box is not None:
-            bh, bw = self.box_radiance.shape[:2]
-            out["box"] = {**self.box.to_json(), "height": bh, "width": bw,
-                          "radiance": [round(float(x), 6) for x in self.box_radiance.reshape(-1)],
-                          "weight": [round(float(x), 4) for x in self.box_weight.reshape(-1)]}
+            out["box"] = {**self.box.to_json(), **_map_json(self.box_radiance, self.box_weight, "weight")}
         return out
 
     @classmethod
@@ -252,30 +239,54 @@ class Backdrop:
         Raises:
             SceneError: missing keys or sizes that do not match (naming ``source``).
         """
-        try:
-            h, w = int(d["height"]), int(d["width"])
-            r = np.asarray(d["radiance"], np.float32)
-            v = np.asarray(d["visibility"], np.float32)
-        except (KeyError, TypeError, ValueError) as e:
-            raise SceneError(f"{source}: not a backdrop ({type(e).__name__}: {e}); re-export the asset") from e
-        if h < 1 or w < 1 or r.size != h * w * 3 or v.size != h * w:
-            raise SceneError(f"{source}: {r.size} radiance and {v.size} visibility values for a {h}x{w} map; "
-                             "re-export the asset")
+        r, v = _read_map(d, "visibility", source, "not a backdrop")
         if "box" not in d:
-            return cls(r.reshape(h, w, 3), v.reshape(h, w))
+            return cls(r, v)
         try:
-            b = d["box"]
-            bh, bw = int(b["height"]), int(b["width"])
-            br = np.asarray(b["radiance"], np.float32)
-            bwt = np.asarray(b["weight"], np.float32)
-            box = BoxProjection.from_json(b)
+            box = BoxProjection.from_json(d["box"])
         except (KeyError, TypeError, ValueError, ShapeError, SceneError) as e:
             raise SceneError(f"{source}.box: not a box projection ({type(e).__name__}: {e}); re-export the "
                              "asset") from e
-        if bh < 1 or bw < 1 or br.size != bh * bw * 3 or bwt.size != bh * bw:
-            raise SceneError(f"{source}.box: {br.size} radiance and {bwt.size} weight values for a {bh}x{bw} map; "
-                             "re-export the asset")
-        return cls(r.reshape(h, w, 3), v.reshape(h, w), box, br.reshape(bh, bw, 3), bwt.reshape(bh, bw))
+        br, bw = _read_map(d["box"], "weight", f"{source}.box", "not a box projection")
+        return cls(r, v, box, br, bw)
+
+
+def _checked_map(rgb, alpha, rgb_name: str, alpha_name: str) -> tuple[np.ndarray, np.ndarray]:
+    """A lat-long map's float32 radiance [h, w, 3] (clipped at 0) and its alpha [h, w] (visibility or weight,
+    clipped to [0, 1]), checked for shape and finite values (:class:`Backdrop`'s two maps)."""
+    r, a = np.asarray(rgb), np.asarray(alpha)
+    if r.ndim != 3 or r.shape[2] != 3 or r.shape[0] < 1 or r.shape[1] < 1:
+        raise ShapeError(f"Backdrop.{rgb_name} has shape {r.shape}; expected [h, w, 3]")
+    if a.shape != r.shape[:2]:
+        raise ShapeError(f"Backdrop.{alpha_name} has shape {a.shape}; expected {r.shape[:2]} like the {rgb_name}")
+    if not (np.isfinite(r).all() and np.isfinite(a).all()):
+        raise SceneError(f"Backdrop: non-finite {rgb_name} or {alpha_name}")
+    return (np.ascontiguousarray(np.clip(r, 0.0, None), np.float32),
+            np.ascontiguousarray(np.clip(a, 0.0, 1.0), np.float32))
+
+
+def _map_json(rgb: np.ndarray, alpha: np.ndarray, alpha_key: str) -> dict:
+    """One of :class:`Backdrop`'s maps as JSON: its size, ``radiance`` and ``alpha_key`` (flat, row-major)."""
+    return {"height": int(rgb.shape[0]), "width": int(rgb.shape[1]),
+            "radiance": [round(float(x), 6) for x in rgb.reshape(-1)],
+            alpha_key: [round(float(x), 4) for x in alpha.reshape(-1)]}
+
+
+def _read_map(d: dict, alpha_key: str, source: str, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_map_json`'s dict back as (radiance [h, w, 3], alpha [h, w]).
+
+    Raises:
+        SceneError: missing keys (``what``) or sizes that do not match, naming ``source``."""
+    try:
+        h, w = int(d["height"]), int(d["width"])
+        r = np.asarray(d["radiance"], np.float32)
+        a = np.asarray(d[alpha_key], np.float32)
+    except (KeyError, TypeError, ValueError) as e:
+        raise SceneError(f"{source}: {what} ({type(e).__name__}: {e}); re-export the asset") from e
+    if h < 1 or w < 1 or r.size != h * w * 3 or a.size != h * w:
+        raise SceneError(f"{source}: {r.size} radiance and {a.size} {alpha_key} values for a {h}x{w} map; "
+                         "re-export the asset")
+    return r.reshape(h, w, 3), a.reshape(h, w)
 
 
 def _view_texels(cams, i: int, h: int, w: int) -> torch.Tensor:

@@ -425,12 +425,9 @@ class PreviewRenderer:
 
         if backdrop is None or (box and backdrop.box is None):
             return None
-        if box:
-            rgba = np.concatenate([backdrop.box_radiance, backdrop.box_weight[..., None]], 2).astype(np.float32)
-        else:
-            rgba = np.concatenate([backdrop.radiance, backdrop.visibility[..., None]], 2).astype(np.float32)
+        rgba = backdrop.rgba(box)
         h, w = rgba.shape[:2]
-        tex = self._keep(self.ctx.texture((w, h), 4, np.ascontiguousarray(rgba).tobytes(), dtype="f4"))
+        tex = self._keep(self.ctx.texture((w, h), 4, rgba.tobytes(), dtype="f4"))
         tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
         tex.repeat_x, tex.repeat_y = True, False
         return tex
