@@ -11,7 +11,8 @@ import torch
 
 from toolkit._checks import ConfigError
 from toolkit.cameras import Cameras, generate_rays
-from toolkit.layout import (FACE_NAMES, LayoutConfig, RoomLayout, box_depth, fit_room_layout, layout_depth_targets,
+from toolkit.layout import (FACE_NAMES, LayoutConfig, RoomLayout, box_depth, face_normals, fit_room_layout,
+                            layout_depth_targets,
                             line_yaw)
 from toolkit.pinhole import look_at
 
@@ -122,6 +123,50 @@ def test_a_box_room_with_paintings_is_recovered_and_its_walls_count():
         t, _ = box_depth(room.layout, rays.origins, rays.directions)
         truth.append((t * rays.z_scale).float())
     assert (tg["depth"] - torch.cat(truth)).abs().median() < 0.08
+    # each target's normal is the inward normal of the true face its ray leaves through
+    truth_n = []
+    true_inward = torch.from_numpy(face_normals(room.layout)).float()
+    for v in tg["views"].unique().tolist():
+        m = tg["views"] == v
+        rays = generate_rays(room.cameras, v, pixels=torch.stack([tg["cols"][m], tg["rows"][m]], -1))
+        _, f = box_depth(room.layout, rays.origins, rays.directions)
+        truth_n.append(true_inward[f])
+    cos = (tg["normal"] * torch.cat(truth_n)).sum(-1)
+    assert tg["normal"].shape == (len(tg["depth"]), 3)
+    assert (cos > math.cos(math.radians(2.0))).float().mean() > 0.9, cos.quantile(torch.tensor([0.05, 0.5]))
+
+
+def test_face_normals_point_into_the_box():
+    """A low face's inward normal is its axis, a high face's the axis negated: from the box's centre, every face
+    lies against its normal; the floor's is up."""
+    lay = RoomLayout(origin=np.array([0.5, -1.0, 0.0]), axes=np.array([[0.6, 0.8, 0.0], [-0.8, 0.6, 0.0], [0, 0, 1.0]]),
+                     lo=np.array([-2.0, -1.5, 0.0]), hi=np.array([3.0, 2.0, 2.5]), confident=np.ones(6, bool),
+                     contrast=np.ones(6), coverage=np.ones(6))
+    n = face_normals(lay)
+    centre = lay.origin + lay.axes.T @ ((lay.lo + lay.hi) / 2)
+    for f in range(6):
+        q = (lay.lo + lay.hi) / 2
+        q[f // 2] = (lay.hi if f % 2 else lay.lo)[f // 2]
+        on_face = lay.origin + lay.axes.T @ q
+        assert (centre - on_face) @ n[f] > 0, FACE_NAMES[f]
+    np.testing.assert_allclose(n[FACE_NAMES.index("floor")], [0, 0, 1])
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0)
+
+
+def test_layout_normal_loss_is_zero_on_the_face_and_grows_with_the_angle():
+    from toolkit.losses import layout_normal_loss
+
+    t = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    w = torch.ones(2)
+    assert float(layout_normal_loss(t * 3.0, t, w)) < 1e-6  # length does not matter
+    tilt = [float(layout_normal_loss(torch.tensor([[math.sin(a), 0.0, math.cos(a)], [math.cos(a), math.sin(a), 0.0]]),
+                                     t, w)) for a in (0.1, 0.5, 1.0)]
+    assert tilt == sorted(tilt) and abs(tilt[0] - (1 - math.cos(0.1))) < 1e-5
+    # a ray that ends in the background (opacity 0) does not count
+    assert float(layout_normal_loss(torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]), t, torch.tensor([0.0, 1.0]))) < 1e-6
+    n = torch.tensor([[0.3, 0.1, 0.9]], requires_grad=True)
+    layout_normal_loss(n, t[:1], torch.ones(1)).backward()
+    assert n.grad is not None and torch.isfinite(n.grad).all() and n.grad.abs().sum() > 0
 
 
 def test_a_glossy_walls_reflections_do_not_draw_it_behind_itself():
@@ -252,6 +297,8 @@ def test_a_run_saved_before_the_layout_loss_existed_resumes_without_it():
     assert old["losses"]["layout_depth"] is None  # by scene type: 0.1 for a room
     del old["losses"]["layout_depth"]
     assert TrainConfig.from_dict(old).losses.layout_depth == 0.0
+    del old["losses"]["layout_normal"]  # likewise the normal term (2026-12-06)
+    assert TrainConfig.from_dict(old).losses.layout_normal == 0.0
     kept = make_config("fast").to_dict()
     assert TrainConfig.from_dict(kept).losses.layout_depth is None  # a stored value (here None) is kept
 
@@ -272,6 +319,10 @@ def test_layout_depth_option_trains_logs_and_is_recorded(sample_scene_path, tmp_
     rows = [json.loads(line) for line in open(run / "log.jsonl")]
     vals = [r["layout_depth"] for r in rows if r.get("kind") == "train" and "layout_depth" in r]
     assert vals and all(math.isfinite(v) and v >= 0 for v in vals), vals
+    # the layout normal term rides on the same rays (a room's default weight, 0.5, recorded as resolved)
+    assert meta["config"]["losses"]["layout_normal"] == 0.5
+    nv = [r["layout_normal"] for r in rows if r.get("kind") == "train" and "layout_normal" in r]
+    assert nv and all(math.isfinite(v) and 0 <= v <= 2 for v in nv), nv
     assert main(["train", "--out", str(run), "--steps", "4", "--resume", "--layout-depth", "0.5", "--quiet"]) == 2
     assert "--layout-depth" in capsys.readouterr().err
 

@@ -390,7 +390,7 @@ def test_room_geometry_losses_follow_the_scene_type(sample_scene_path):
 
     scene = load_scene(sample_scene_path, "train")
     keys = tuple(ROOM_LOSSES)
-    assert set(keys) == {"sparse_depth", "opacity", "depth_normal", "layout_depth", "orientation"}
+    assert set(keys) == {"sparse_depth", "opacity", "depth_normal", "layout_depth", "orientation", "layout_normal"}
     assert make_config("fast", steps=1).losses.orientation is None and OBJECT_LOSSES == {"orientation": 0.1}
     assert all(v > 0 for v in ROOM_LOSSES.values())
     room, _ = resolve_config(make_config("fast", steps=1), scene)

@@ -48,8 +48,8 @@ from ._checks import ConfigError
 from .defaults import YAW_FROM_DEFAULT
 from .cameras import Cameras, generate_rays
 
-__all__ = ["LayoutConfig", "RoomLayout", "fit_room_layout", "layout_depth_targets", "box_depth", "line_yaw",
-           "plot_layout"]
+__all__ = ["LayoutConfig", "RoomLayout", "fit_room_layout", "layout_depth_targets", "face_normals", "box_depth",
+           "line_yaw", "plot_layout"]
 
 FACE_NAMES = ("-a", "+a", "-b", "+b", "floor", "ceiling")
 """Faces in the order of :attr:`RoomLayout.offsets`: the two horizontal axes' low and high sides, then along up."""
@@ -561,9 +561,18 @@ def fit_room_layout(scene, points: np.ndarray | None = None, cfg: LayoutConfig =
     return layout
 
 
+def face_normals(layout: RoomLayout) -> np.ndarray:
+    """float [6, 3] the inward unit normal of each face (:data:`FACE_NAMES` order, world): a low face's is its axis,
+    a high face's the axis negated (the floor's is up, the ceiling's down)."""
+    axes = np.asarray(layout.axes, np.float64)
+    return np.stack([axes[f // 2] * (1.0 if f % 2 == 0 else -1.0) for f in range(6)])
+
+
 def layout_depth_targets(scene, layout: RoomLayout, regions=None) -> dict[str, torch.Tensor]:
     """Depth targets for the pixels of the photos' textureless regions whose ray leaves the box through a face
-    that counts; the format of :func:`toolkit.bounds.sparse_depth_targets` (depth along the camera axis).
+    that counts; the format of :func:`toolkit.bounds.sparse_depth_targets` (depth along the camera axis), plus
+    ``normal``: float [N, 3] the inward unit normal of the face each pixel's ray leaves through (world), the target
+    of ``losses.layout_normal``.
 
     ``regions``: optional callable, view index -> label map or bool mask [H, W] of its textureless pixels (nonzero);
     default :func:`toolkit.regions.textureless_regions` of the decoded photo."""
@@ -572,7 +581,8 @@ def layout_depth_targets(scene, layout: RoomLayout, regions=None) -> dict[str, t
     c = scene.cameras
     cams = Cameras(c.c2w.double(), c.fx.double(), c.fy.double(), c.cx.double(), c.cy.double(), c.width, c.height)
     conf = torch.as_tensor(layout.confident)
-    out = {"views": [], "rows": [], "cols": [], "depth": []}
+    inward = torch.from_numpy(face_normals(layout)).float()
+    out = {"views": [], "rows": [], "cols": [], "depth": [], "normal": []}
     for v in range(len(scene)):
         reg = textureless_regions(scene.load_image(v)) if regions is None else regions(v)
         rows, cols = np.nonzero(reg > 0)
@@ -586,9 +596,10 @@ def layout_depth_targets(scene, layout: RoomLayout, regions=None) -> dict[str, t
         out["rows"].append(torch.from_numpy(rows)[ok].long())
         out["cols"].append(torch.from_numpy(cols)[ok].long())
         out["depth"].append(z[ok].float())
+        out["normal"].append(inward[face[ok]])
     if not out["views"]:
         return {"views": torch.zeros(0, dtype=torch.int64), "rows": torch.zeros(0, dtype=torch.int64),
-                "cols": torch.zeros(0, dtype=torch.int64), "depth": torch.zeros(0)}
+                "cols": torch.zeros(0, dtype=torch.int64), "depth": torch.zeros(0), "normal": torch.zeros(0, 3)}
     return {k: torch.cat(v) for k, v in out.items()}
 
 

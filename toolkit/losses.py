@@ -42,7 +42,7 @@ from .scene import UNLABELLED
 
 __all__ = ["LossWeights", "rgb_l1", "psnr_loss", "ssim_loss", "material_loss", "semantic_loss",
            "normal_consistency_loss", "depth_normal_loss", "depth_normals", "orientation_loss", "sparse_depth_loss",
-           "planarity_loss",
+           "layout_normal_loss", "planarity_loss",
            "light_residual_loss", "compactness_loss",
            "PAINTING", "METAL_TARGET", "PAINTING_ROUGHNESS"]
 
@@ -87,6 +87,11 @@ class LossWeights:
     (:func:`toolkit.layout.fit_room_layout`, a photometric plane sweep over the walls, floor and ceiling), with
     :func:`sparse_depth_loss`; only faces the sweep is confident of give targets. 0 = off; None = by scene type, as
     ``opacity`` (0.1 for a room since 2026-11-29: README, "A room box from the photos")."""
+    layout_normal: float | None = None
+    """Ours (ManhattanSDF's idea on our own box): the rendered normal of the pixels that ``layout_depth`` sends to
+    the room's box must be the inward normal of the face their ray leaves through (a wall's is horizontal, the
+    floor's up), :func:`layout_normal_loss`. Nothing here is ground truth: the faces and the pixels come from the
+    photometric sweep and the predicted labels. 0 = off; None = by scene type, as ``opacity``."""
     planar: float = 0.0
     """Ours (StructNeRF's planar constraint, our form): the rendered points of each large textureless region of a
     photo (:func:`toolkit.regions.textureless_regions`: plain walls, floors) lie on one plane,
@@ -224,6 +229,20 @@ def depth_normal_loss(points: torch.Tensor, normals: torch.Tensor, view_dirs: to
     ok = (nd.square().sum(-1) > 0.5).to(points.dtype)
     w = weights[:, 1:-1, 1:-1].detach() * ok
     cos = (normals[:, 1:-1, 1:-1] * nd).sum(-1)
+    return ((1.0 - cos) * w).sum() / w.sum().clamp_min(1e-12)
+
+
+def layout_normal_loss(normals: torch.Tensor, targets: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Σ w (1 − n̂ · n*) / Σ w: rendered normals against known face normals (the room box's, ``losses.layout_normal``).
+
+    Args:
+        normals: float [R, 3] rendered normals (normalised here; a zero normal costs 1).
+        targets: float [R, 3] unit target normals.
+        weights: float [R] per-ray weights, e.g. opacity (treated as constants).
+    """
+    w = weights.detach()
+    n = F.normalize(normals, dim=-1, eps=1e-6)
+    cos = (n * targets.to(n)).sum(-1)
     return ((1.0 - cos) * w).sum() / w.sum().clamp_min(1e-12)
 
 

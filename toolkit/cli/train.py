@@ -85,6 +85,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="weight of the room-layout loss: rays through the photos' large textureless regions end on "
                         "the room's box, found by a photometric plane sweep before the first step (toolkit.layout; "
                         "default: 0.1 for a room, 0 for an object; 0 = off)")
+    q.add_argument("--layout-normal", type=NONNEGATIVE, default=None, metavar="W",
+                   help="weight of the room-layout normal loss: the rendered normal of those same pixels is the "
+                        "inward normal of the box face their ray leaves through (a wall's horizontal, the floor's "
+                        "up; default: 0.5 for a room, 0 for an object; 0 = off)")
     q.add_argument("--shade", choices=["samples", "rays"], default=None,
                    help="where the heads and the PBR shading run: at every sample, shaded colours composited "
                         "(samples), or once per ray on the composited field feature (rays: fewer evaluations a step, "
@@ -147,7 +151,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 _LOSS_OPTIONS = (("opacity-loss", "opacity_loss", "opacity"), ("sparse-depth", "sparse_depth", "sparse_depth"),
                  ("depth-normal", "depth_normal", "depth_normal"), ("planar-loss", "planar_loss", "planar"),
-                 ("layout-depth", "layout_depth", "layout_depth"), ("orientation", "orientation", "orientation"))
+                 ("layout-depth", "layout_depth", "layout_depth"), ("layout-normal", "layout_normal", "layout_normal"),
+                 ("orientation", "orientation", "orientation"))
 """Loss-weight options of ``dars train``: (flag, argparse attribute, ``LossWeights`` field); None = by scene type."""
 
 _RESUME_OPTIONS = (

@@ -190,7 +190,7 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
     known_bg = pri.light is not None and photos_have_transparency(scene)
     need_light = pri.light is None or known_bg
     want_planar = cfg.losses.planar > 0 and with_images
-    want_layout = (cfg.losses.layout_depth or 0.0) > 0 and with_images
+    want_layout = ((cfg.losses.layout_depth or 0.0) > 0 or (cfg.losses.layout_normal or 0.0) > 0) and with_images
     planar_parts: list[tuple[int, np.ndarray]] = []
     layout_regions: list[np.ndarray] = []  # textureless pixels (bool [H, W]) of each photo, for the layout targets
     gen = np.random.default_rng(cfg.seed)
@@ -271,7 +271,8 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         priors["layout_targets"] = f"textureless pixels {which}"
         log(f"[dars] room layout: box {np.round(room.hi - room.lo, 2).tolist()}, faces used: "
             f"{', '.join(faces) or 'none'}; {len(layout['depth'])} textureless pixels {which} with a depth on it "
-            f"(weight {cfg.losses.layout_depth:g})" + ("; none: the loss is off" if not len(layout["depth"]) else ""))
+            f"(weight {cfg.losses.layout_depth:g}, normals {cfg.losses.layout_normal or 0.0:g})"
+            + ("; none: the loss is off" if not len(layout["depth"]) else ""))
         if not len(layout["depth"]):
             layout = None
     planar = None

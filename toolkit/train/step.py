@@ -15,8 +15,8 @@ from .._checks import DarsError
 from ..field import DarsField
 from ..io import linear_to_srgb, srgb_to_linear
 from ..losses import (compactness_loss, depth_normal_loss, light_residual_loss, material_loss, normal_consistency_loss,
-                      orientation_loss, planarity_loss, psnr_loss, rgb_l1, semantic_loss, sparse_depth_loss,
-                      ssim_loss)
+                      layout_normal_loss, orientation_loss, planarity_loss, psnr_loss, rgb_l1, semantic_loss,
+                      sparse_depth_loss, ssim_loss)
 from ..pipeline import Background, DarsContext, RenderConfig, RenderInputs, render_rays
 from ..pixels import PackedViews
 from ..sampling import OccupancyGrid, build_ray_sampler, neighbour_views, select_rays
@@ -346,9 +346,10 @@ def _render_pixels(state: TrainState, data: TrainData, views: torch.Tensor, rows
     return rays, _render(state, rays, wray, state.l_env.detach(), deferred=True)
 
 
-def _sparse_depth_term(state: TrainState, data: TrainData, sd: dict) -> torch.Tensor:
+def _sparse_depth_term(state: TrainState, data: TrainData, sd: dict, normals: bool = False):
     """:func:`toolkit.losses.sparse_depth_loss` on ``SPARSE_DEPTH_RAYS`` rays drawn from ``sd`` (pixels with a
-    depth target: ``data.sparse_depth`` or ``data.layout_depth``)."""
+    depth target: ``data.sparse_depth`` or ``data.layout_depth``). With ``normals`` (``sd`` has a ``normal`` target,
+    as ``data.layout_depth``) returns ``(depth term, layout_normal_loss of the same rays)``."""
     dev = state.device
     k = len(sd["depth"])
     pick = torch.randint(0, k, (min(k, SPARSE_DEPTH_RAYS),), generator=state.generator)
@@ -356,7 +357,10 @@ def _sparse_depth_term(state: TrainState, data: TrainData, sd: dict) -> torch.Te
     ri = out.sample_ray_indices
     t = ((out.sample_points - rays.origins[ri]) * rays.directions[ri]).sum(-1)
     t_target = sd["depth"][pick].to(dev) / rays.z_scale.reshape(-1)  # camera-axis depth -> distance along the ray
-    return sparse_depth_loss(out.weights, t, ri, t_target, len(pick))
+    depth = sparse_depth_loss(out.weights, t, ri, t_target, len(pick))
+    if not normals:
+        return depth
+    return depth, layout_normal_loss(out.normal, sd["normal"][pick].to(dev), out.opacity)
 
 
 PLANAR_REGIONS = 8
@@ -472,8 +476,15 @@ def train_step(state: TrainState, data: TrainData) -> dict:
             terms["orientation"] = orientation_loss(out.normal, batch.rays.directions, out.opacity)
     if (lw.sparse_depth or 0.0) > 0 and data.sparse_depth is not None:
         terms["sparse_depth"] = _sparse_depth_term(state, data, data.sparse_depth)
-    if (lw.layout_depth or 0.0) > 0 and data.layout_depth is not None:
-        terms["layout_depth"] = _sparse_depth_term(state, data, data.layout_depth)
+    lay_d, lay_n = (lw.layout_depth or 0.0) > 0, (lw.layout_normal or 0.0) > 0
+    if (lay_d or lay_n) and data.layout_depth is not None:
+        if lay_n and "normal" in data.layout_depth:
+            depth_term, normal_term = _sparse_depth_term(state, data, data.layout_depth, normals=True)
+            terms["layout_normal"] = normal_term
+        else:
+            depth_term = _sparse_depth_term(state, data, data.layout_depth)
+        if lay_d:
+            terms["layout_depth"] = depth_term
     if lw.planar > 0 and data.planar is not None:
         terms["planar"] = _planar_term(state, data)
     if cfg.semantics and batch.labels is not None and lw.semantic > 0:
@@ -491,7 +502,8 @@ def train_step(state: TrainState, data: TrainData) -> dict:
     weight = {"rgb": lw.rgb, "ssim": lw.ssim, "mat": lw.mat, "psnr_loss": lw.psnr, "eikonal": lw.eikonal,
               "orientation": lw.orientation, "semantic": lw.semantic, "light_reg": lw.light_reg, "colour_reg": lw.colour_reg,
               "compactness": lw.compactness, "opacity": lw.opacity, "sparse_depth": lw.sparse_depth,
-              "depth_normal": lw.depth_normal, "planar": lw.planar, "layout_depth": lw.layout_depth}
+              "depth_normal": lw.depth_normal, "planar": lw.planar, "layout_depth": lw.layout_depth,
+              "layout_normal": lw.layout_normal}
     loss = sum(weight[k] * v for k, v in terms.items())
     if not torch.isfinite(loss):
         bad = [k for k, v in terms.items() if not torch.isfinite(v)]
