@@ -319,8 +319,8 @@ def test_layout_depth_option_trains_logs_and_is_recorded(sample_scene_path, tmp_
     rows = [json.loads(line) for line in open(run / "log.jsonl")]
     vals = [r["layout_depth"] for r in rows if r.get("kind") == "train" and "layout_depth" in r]
     assert vals and all(math.isfinite(v) and v >= 0 for v in vals), vals
-    # the layout normal term rides on the same rays (a room's default weight, 0.5, recorded as resolved)
-    assert meta["config"]["losses"]["layout_normal"] == 0.5
+    # the layout normal term rides on the same rays (a room's default weight, 0.1, recorded as resolved)
+    assert meta["config"]["losses"]["layout_normal"] == 0.1
     nv = [r["layout_normal"] for r in rows if r.get("kind") == "train" and "layout_normal" in r]
     assert nv and all(math.isfinite(v) and 0 <= v <= 2 for v in nv), nv
     assert main(["train", "--out", str(run), "--steps", "4", "--resume", "--layout-depth", "0.5", "--quiet"]) == 2

@@ -88,7 +88,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--layout-normal", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the room-layout normal loss: the rendered normal of those same pixels is the "
                         "inward normal of the box face their ray leaves through (a wall's horizontal, the floor's "
-                        "up; default: 0.5 for a room, 0 for an object; 0 = off)")
+                        "up; default: 0.1 for a room, 0 for an object; 0 = off)")
     q.add_argument("--shade", choices=["samples", "rays"], default=None,
                    help="where the heads and the PBR shading run: at every sample, shaded colours composited "
                         "(samples), or once per ray on the composited field feature (rays: fewer evaluations a step, "

@@ -257,7 +257,7 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
 
 
 ROOM_LOSSES = {"sparse_depth": 0.1, "opacity": 0.1, "depth_normal": 0.5, "layout_depth": 0.1, "orientation": 1.0,
-               "layout_normal": 0.5}
+               "layout_normal": 0.1}
 """Loss weights that :func:`resolve_config` gives a room (``unbounded``) where the config leaves them None: the
 geometry terms measured on the validation galleries (README, "Geometry of a room", "A room box from the photos" and
 "Normals that face the camera"). An object on a transparent background gets :data:`OBJECT_LOSSES`' weight where it
