@@ -12,8 +12,7 @@ import torch
 from toolkit._checks import ConfigError
 from toolkit.cameras import Cameras, generate_rays
 from toolkit.layout import (FACE_NAMES, LayoutConfig, RoomLayout, box_depth, face_normals, fit_room_layout,
-                            layout_depth_targets,
-                            line_yaw)
+                            layout_depth_targets, line_yaw)
 from toolkit.pinhole import look_at
 
 YAW = math.radians(20.0)  # the room is not aligned with the world axes

@@ -99,6 +99,12 @@ class LossWeights:
     walls closer in 6 of 7 paired runs but moved nothing else beyond the seed spread (README, "A planarity prior for
     textureless regions")."""
 
+    @property
+    def uses_room_layout(self) -> bool:
+        """Whether a term reads the room's box (``layout_depth`` or ``layout_normal`` on): the box is fitted, or
+        read from the run or the priors, only then."""
+        return (self.layout_depth or 0.0) > 0 or (self.layout_normal or 0.0) > 0
+
 
 def _wmean(x: torch.Tensor, iw: torch.Tensor | None) -> torch.Tensor:
     if iw is None:
@@ -240,10 +246,8 @@ def layout_normal_loss(normals: torch.Tensor, targets: torch.Tensor, weights: to
         targets: float [R, 3] unit target normals.
         weights: float [R] per-ray weights, e.g. opacity (treated as constants).
     """
-    w = weights.detach()
-    n = F.normalize(normals, dim=-1, eps=1e-6)
-    cos = (n * targets.to(n)).sum(-1)
-    return ((1.0 - cos) * w).sum() / w.sum().clamp_min(1e-12)
+    cos = (F.normalize(normals, dim=-1, eps=1e-6) * targets.to(normals)).sum(-1)
+    return _wmean(1.0 - cos, weights.detach())
 
 
 def orientation_loss(normals: torch.Tensor, view_dirs: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:

@@ -91,8 +91,8 @@ def _plot_curves(log_path: Path, out: Path) -> None:
     rows = [r for r in rows if r.get("kind") == "train"]
     if not rows:
         return
-    keys = [k for k in ("loss", "rgb", "ssim", "psnr_loss", "mat", "eikonal", "orientation", "semantic", "light_reg", "distortion",
-                               "layout_depth", "layout_normal") if any(k in r for r in rows)]
+    keys = [k for k in ("loss", "rgb", "ssim", "psnr_loss", "mat", "eikonal", "orientation", "semantic", "light_reg",
+                        "distortion", "layout_depth", "layout_normal") if any(k in r for r in rows)]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for k in keys:
         xs = [r["step"] for r in rows if k in r]
@@ -121,7 +121,7 @@ def _room_layout(cfg: TrainConfig, scene, saved: dict | None, ddp, log, priors_r
     run's priors folder or the scene's own, or, under torch.distributed, the box rank 0 fits on every photo (each
     rank would otherwise fit its own on its shard, and the ranks' targets would disagree). None: off, or one
     process fits it in ``prepare_data``."""
-    if (cfg.losses.layout_depth or 0.0) <= 0 and (cfg.losses.layout_normal or 0.0) <= 0:
+    if not cfg.losses.uses_room_layout:
         return None
     from ..layout import RoomLayout, fit_room_layout
     from ..priors import priors_path, read_layout

@@ -346,10 +346,12 @@ def _render_pixels(state: TrainState, data: TrainData, views: torch.Tensor, rows
     return rays, _render(state, rays, wray, state.l_env.detach(), deferred=True)
 
 
-def _sparse_depth_term(state: TrainState, data: TrainData, sd: dict, normals: bool = False):
+def _sparse_depth_term(state: TrainState, data: TrainData, sd: dict,
+                       normals: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
     """:func:`toolkit.losses.sparse_depth_loss` on ``SPARSE_DEPTH_RAYS`` rays drawn from ``sd`` (pixels with a
-    depth target: ``data.sparse_depth`` or ``data.layout_depth``). With ``normals`` (``sd`` has a ``normal`` target,
-    as ``data.layout_depth``) returns ``(depth term, layout_normal_loss of the same rays)``."""
+    depth target: ``data.sparse_depth`` or ``data.layout_depth``), and with ``normals`` the
+    :func:`toolkit.losses.layout_normal_loss` of the same rays against ``sd["normal"]`` (``data.layout_depth``'s face
+    normals); None without."""
     dev = state.device
     k = len(sd["depth"])
     pick = torch.randint(0, k, (min(k, SPARSE_DEPTH_RAYS),), generator=state.generator)
@@ -358,9 +360,7 @@ def _sparse_depth_term(state: TrainState, data: TrainData, sd: dict, normals: bo
     t = ((out.sample_points - rays.origins[ri]) * rays.directions[ri]).sum(-1)
     t_target = sd["depth"][pick].to(dev) / rays.z_scale.reshape(-1)  # camera-axis depth -> distance along the ray
     depth = sparse_depth_loss(out.weights, t, ri, t_target, len(pick))
-    if not normals:
-        return depth
-    return depth, layout_normal_loss(out.normal, sd["normal"][pick].to(dev), out.opacity)
+    return depth, (layout_normal_loss(out.normal, sd["normal"][pick].to(dev), out.opacity) if normals else None)
 
 
 PLANAR_REGIONS = 8
@@ -475,16 +475,14 @@ def train_step(state: TrainState, data: TrainData) -> dict:
         else:
             terms["orientation"] = orientation_loss(out.normal, batch.rays.directions, out.opacity)
     if (lw.sparse_depth or 0.0) > 0 and data.sparse_depth is not None:
-        terms["sparse_depth"] = _sparse_depth_term(state, data, data.sparse_depth)
-    lay_d, lay_n = (lw.layout_depth or 0.0) > 0, (lw.layout_normal or 0.0) > 0
-    if (lay_d or lay_n) and data.layout_depth is not None:
-        if lay_n and "normal" in data.layout_depth:
-            depth_term, normal_term = _sparse_depth_term(state, data, data.layout_depth, normals=True)
-            terms["layout_normal"] = normal_term
-        else:
-            depth_term = _sparse_depth_term(state, data, data.layout_depth)
-        if lay_d:
+        terms["sparse_depth"], _ = _sparse_depth_term(state, data, data.sparse_depth)
+    if lw.uses_room_layout and data.layout_depth is not None:
+        depth_term, normal_term = _sparse_depth_term(state, data, data.layout_depth,
+                                                     normals=(lw.layout_normal or 0.0) > 0)
+        if (lw.layout_depth or 0.0) > 0:
             terms["layout_depth"] = depth_term
+        if normal_term is not None:
+            terms["layout_normal"] = normal_term
     if lw.planar > 0 and data.planar is not None:
         terms["planar"] = _planar_term(state, data)
     if cfg.semantics and batch.labels is not None and lw.semantic > 0:
