@@ -22,7 +22,8 @@ Where ``best_sh`` is above a target, no light estimate meets it with a global SH
 varies across the room (spots on the art, the floor far from the laylights, shadows), which only the per-point light
 residual (or the albedo) can take.
 
-Usage (galleries rendered by ``samples/galleries.py`` or the bundled sample; the validation set by default)::
+Usage (galleries rendered by ``samples/galleries.py`` or the bundled sample; by default the cached validation set,
+else the sample)::
 
     python bench/bench_albedo_bound.py [GALLERY ...] [--split test] [--out bench/out/albedo_bound]
 
@@ -192,7 +193,8 @@ def gather(scene_dir: Path, split: str = "test") -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("galleries", nargs="*", type=Path,
-                    help="gallery folders (default: every cached validation gallery, ~/.cache/dars/galleries/validation)")
+                    help="gallery folders (default: every cached validation gallery, ~/.cache/dars/galleries/validation, "
+                         "else the bundled sample)")
     ap.add_argument("--split", default="test")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "out" / "albedo_bound")
@@ -204,8 +206,9 @@ def main(argv=None) -> int:
 
         dirs = sorted((cache_root() / "validation").glob("seed_*"))
         if not dirs:
-            raise SystemExit("no gallery given and none cached: render the validation set first "
-                             "(python samples/galleries.py --profile validation --seeds 1000000-1000007)")
+            print("no validation gallery cached (python samples/galleries.py --profile validation --seeds all renders "
+                  "them): the bundled sample alone")
+            dirs = [REPO / "samples" / "gallery"]
     t0 = time.time()
     res = {}
     print(f"{'gallery':<16} {'pixels':>7} | {'true SH':>7} {'aligned':>7} | {'best SH':>7} | diffuse: true  best | "
