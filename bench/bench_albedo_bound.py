@@ -58,10 +58,9 @@ def damp_sh(sh: torch.Tensor, d: float) -> torch.Tensor:
 
 def _irradiance_design(normals: torch.Tensor) -> torch.Tensor:
     """float64 [M, 9]: ``E(n; L)_c = design @ L[:, c]`` (:func:`toolkit.sh.irradiance_sh` as a linear map of L)."""
-    from toolkit.sh import SH_IRRADIANCE_BANDS, sh_basis
+    from toolkit.sh import SH_BAND_OF_K, SH_IRRADIANCE_BANDS, sh_basis
 
-    bands = torch.tensor([SH_IRRADIANCE_BANDS[0]] + [SH_IRRADIANCE_BANDS[1]] * 3 + [SH_IRRADIANCE_BANDS[2]] * 5,
-                         dtype=torch.float64)
+    bands = torch.tensor([SH_IRRADIANCE_BANDS[b] for b in SH_BAND_OF_K], dtype=torch.float64)
     return sh_basis(normals.double()) * bands
 
 

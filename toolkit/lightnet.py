@@ -72,7 +72,7 @@ import torch.nn.functional as F
 from ._checks import ConfigError, DarsError, check_shape
 from .io import linear_to_srgb, save_torch, srgb_to_linear
 from .segment import IMAGENET_MEAN, IMAGENET_STD
-from .sh import SH_C0
+from .sh import SH_BAND_OF_K, SH_C0
 
 __all__ = [
     "DEFAULT_WEIGHTS",
@@ -109,7 +109,6 @@ DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "lightnet_small.
 SH_BAND_BOUNDS = (1.0, math.sqrt(3.0), math.sqrt(5.0))
 """``b_l``: ``|L_lm| ≤ b_l · L00`` for any non-negative radiance (``max|Y_lm| / Y00 ≤ √(2l+1)``)."""
 
-_BAND_OF_K = (0, 1, 1, 1, 2, 2, 2, 2, 2)
 _FORMAT = "dars-lightnet"
 
 
@@ -226,7 +225,7 @@ def sh_from_logits(logits: torch.Tensor, dc_max: float | torch.Tensor) -> torch.
     if isinstance(dc_max, torch.Tensor):
         dc_max = dc_max.reshape(-1, 1, 3)
     dc = dc_max * torch.sigmoid(z[:, :1])
-    bound = z.new_tensor([SH_BAND_BOUNDS[_BAND_OF_K[k]] for k in range(1, 9)])[:, None]
+    bound = z.new_tensor([SH_BAND_BOUNDS[SH_BAND_OF_K[k]] for k in range(1, 9)])[:, None]
     rest = bound * dc * (2.0 * torch.sigmoid(z[:, 1:]) - 1.0)
     return torch.cat([dc, rest], 1)
 
@@ -237,7 +236,7 @@ def logits_from_sh(sh: torch.Tensor, dc_max: float | torch.Tensor, eps: float = 
     if isinstance(dc_max, torch.Tensor):
         dc_max = dc_max.reshape(-1, 1, 3)
     dc = (sh[:, :1] / dc_max).clamp(eps, 1 - eps)
-    bound = sh.new_tensor([SH_BAND_BOUNDS[_BAND_OF_K[k]] for k in range(1, 9)])[:, None]
+    bound = sh.new_tensor([SH_BAND_BOUNDS[SH_BAND_OF_K[k]] for k in range(1, 9)])[:, None]
     u = (0.5 * (sh[:, 1:] / (bound * dc * dc_max) + 1.0)).clamp(eps, 1 - eps)
     return torch.logit(torch.cat([dc, u], 1)).reshape(sh.shape[0], 27)
 
@@ -681,7 +680,7 @@ def train_lightnet(dataset: LightDataset, cfg: TrainLightNetConfig = TrainLightN
                 sub = torch.randperm(len(train), generator=g)[:512]
                 x = _resize(linear_to_srgb(train.radiance[sub].clamp(0.0, 1.0)), net.cfg.input_size).to(device)
                 net.head[-1].bias.copy_(logits_from_sh(train.sh[sub].to(device), net.dc_range(x)).mean(0))
-    w = torch.tensor([cfg.band_weights[_BAND_OF_K[k]] for k in range(9)], device=device)[:, None]
+    w = torch.tensor([cfg.band_weights[SH_BAND_OF_K[k]] for k in range(9)], device=device)[:, None]
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=max(cfg.steps, 1), pct_start=0.1)
     losses: list[float] = []

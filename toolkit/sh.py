@@ -60,6 +60,7 @@ __all__ = [
     "SH_C3",
     "SH_C4",
     "SH_IRRADIANCE_BANDS",
+    "SH_BAND_OF_K",
     "ShFitConfig",
     "ShProbe",
     "sh_basis",
@@ -95,7 +96,8 @@ SH_C4 = math.sqrt(15.0 / (16.0 * math.pi))  # 0.546274
 SH_IRRADIANCE_BANDS = (math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0)
 """Â_l for l = 0, 1, 2: the clamped-cosine kernel in SH (Ramamoorthi & Hanrahan 2001, eq. 8)."""
 
-_BAND_OF_K = (0, 1, 1, 1, 2, 2, 2, 2, 2)
+SH_BAND_OF_K = (0, 1, 1, 1, 2, 2, 2, 2, 2)
+"""The band l of each of the 9 coefficients, in SPEC order (for per-band factors such as ``SH_IRRADIANCE_BANDS``)."""
 
 WORLD_TO_Y_UP = ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0))
 """Rotation taking our +z-up world directions to three.js / glTF +y-up ones: ``(x, y, z) → (x, z, −y)``."""
@@ -171,7 +173,7 @@ def eval_sh(coeffs: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
 
 
 def _band_scale(ref: torch.Tensor, bands: tuple[float, float, float]) -> torch.Tensor:
-    return torch.tensor([bands[b] for b in _BAND_OF_K], dtype=ref.dtype, device=ref.device).unsqueeze(-1)
+    return torch.tensor([bands[b] for b in SH_BAND_OF_K], dtype=ref.dtype, device=ref.device).unsqueeze(-1)
 
 
 def irradiance_sh(coeffs: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
@@ -646,7 +648,7 @@ def sh_to_gltf_ibl(coeffs: torch.Tensor | np.ndarray, intensity: float = 1.0) ->
     c = _as_coeffs(coeffs).detach().to("cpu", torch.float64)
     check_shape(c, "9 3", name="coeffs")
     rotated = rotate_sh(c, torch.tensor(WORLD_TO_Y_UP, dtype=torch.float64))
-    scale = torch.tensor([GLTF_SH_SIGNS[k] * SH_IRRADIANCE_BANDS[_BAND_OF_K[k]] for k in range(9)], dtype=torch.float64)
+    scale = torch.tensor([GLTF_SH_SIGNS[k] * SH_IRRADIANCE_BANDS[SH_BAND_OF_K[k]] for k in range(9)], dtype=torch.float64)
     irr = rotated * scale[:, None]
     return {
         "intensity": float(intensity),

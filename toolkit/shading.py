@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .sh import SH_IRRADIANCE_BANDS, sh_basis
+from .sh import SH_BAND_OF_K, SH_IRRADIANCE_BANDS, sh_basis
 
 __all__ = ["ShadingConfig", "Shading", "shade_pbr", "specular_band_attenuation", "env_brdf", "dfg_table",
            "DIELECTRIC_F0", "SPEC_BAND_G1", "SPEC_BAND_G2"]
@@ -45,7 +45,6 @@ SPEC_BAND_G2 = (1.00000, 0.99994, 0.99925, 0.99697, 0.99208, 0.98375, 0.97140, 0
                 0.84780, 0.81325, 0.77679, 0.73909, 0.70077, 0.66241, 0.62450, 0.58748, 0.55171, 0.51746, 0.48493,
                 0.45427, 0.42556, 0.39882, 0.37406, 0.35123, 0.33027, 0.31108, 0.29356, 0.27762, 0.26314, 0.25000)
 """g_2 at roughness i/32, i = 0..32."""
-_BAND_OF_K = (0, 1, 1, 1, 2, 2, 2, 2, 2)
 
 
 @dataclass(frozen=True)
@@ -197,7 +196,7 @@ def shade_pbr(
         ...           torch.tensor([0., 0, 1]), sh, ShadingConfig(specular=False)).colour  # a·E/π = 0.5
         tensor([0.5000, 0.5000, 0.5000])
     """
-    band_w = torch.tensor([SH_IRRADIANCE_BANDS[b] for b in _BAND_OF_K], dtype=albedo.dtype, device=albedo.device)
+    band_w = torch.tensor([SH_IRRADIANCE_BANDS[b] for b in SH_BAND_OF_K], dtype=albedo.dtype, device=albedo.device)
     y = sh_basis(normals) * band_w  # [..., 9]: the irradiance weights of the normal
     if cfg.specular:
         n_dot_v_raw = (normals * view_dirs).sum(-1, keepdim=True)

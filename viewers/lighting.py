@@ -20,13 +20,12 @@ import numpy as np
 import torch
 
 from toolkit._checks import ConfigError, DarsError
-from toolkit.sh import (GLTF_SH_SIGNS, SH_C0, SH_IRRADIANCE_BANDS, WORLD_TO_Y_UP, check_sh_coeffs, read_sh_json,
-                        rotate_sh)
+from toolkit.sh import (GLTF_SH_SIGNS, SH_BAND_OF_K, SH_C0, SH_IRRADIANCE_BANDS, WORLD_TO_Y_UP, check_sh_coeffs,
+                        read_sh_json, rotate_sh)
 
 __all__ = ["DEFAULT_SH", "asset_sh", "sh_from_gltf_ibl", "sh_from_probe", "resolve_sh", "draws_backdrop",
            "light_scale"]
 
-_BAND_OF_K = (0, 1, 1, 1, 2, 2, 2, 2, 2)
 
 DEFAULT_SH = np.zeros((9, 3))
 DEFAULT_SH[0] = 1.0 / SH_C0
@@ -46,7 +45,7 @@ def sh_from_gltf_ibl(light: dict) -> np.ndarray:
     if "irradianceCoefficients" not in light:
         raise DarsError("EXT_lights_image_based light has no irradianceCoefficients")
     irr = check_sh_coeffs(light["irradianceCoefficients"], "EXT_lights_image_based irradianceCoefficients")
-    scale = np.array([GLTF_SH_SIGNS[k] * SH_IRRADIANCE_BANDS[_BAND_OF_K[k]] for k in range(9)])
+    scale = np.array([GLTF_SH_SIGNS[k] * SH_IRRADIANCE_BANDS[SH_BAND_OF_K[k]] for k in range(9)])
     radiance_gltf = irr / scale[:, None] * float(light.get("intensity", 1.0))
     q = np.asarray(light.get("rotation", [0.0, 0.0, 0.0, 1.0]), dtype=np.float64)
     c = torch.as_tensor(radiance_gltf)
