@@ -259,6 +259,9 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=12)
     ap.add_argument("--crop", type=int, default=128)
     ap.add_argument("--lr", type=float, default=4e-3)
+    ap.add_argument("--scale-range", default="0.75,1.3", metavar="LO,HI",
+                    help="random rescale of the training views around the work size (above 1: zoomed in, as close-up "
+                         "photos of a wall are)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--init", type=Path, default=None, help="continue from this segmenter.pt")
@@ -299,7 +302,7 @@ def main(argv=None) -> int:
     net = load_segmenter(args.init) if args.init else Segmenter(arch)
     # photos are segmented at work_size on their short side: train_segmenter trains at that scale (x 0.75-1.3)
     cfg = TrainSegmenterConfig(arch=arch, steps=args.steps, batch_size=args.batch, crop=args.crop,
-                               scale_range=(0.75, 1.3), lr=args.lr, colour_jitter=0.25,
+                               scale_range=tuple(float(x) for x in args.scale_range.split(",")), lr=args.lr, colour_jitter=0.25,
                                exposure_stops=1.5, noise=0.03, blur=1.5, jpeg=30, seed=args.seed, progress=True)
     res = train_segmenter(imgs, labs, cfg, model=net, metal=mets)
     print(f"trained {args.steps} steps in {res.seconds:.0f} s; train mIoU {res.train_miou:.3f}; "
@@ -322,9 +325,9 @@ def main(argv=None) -> int:
     if args.save:
         card = {
             "command": "bench/bench_segmenter.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-            "data": {"train_galleries": [d.name for d in train_dirs], "profile": "prior",
+            "data": {"train_galleries": [d.name for d in train_dirs], "profile": args.prior_dir.name,
                      "extra_galleries": [f"{d.parent.name}/{d.name}" for d in extra_dirs],
-                     "render_command": "samples/galleries.py --profile prior --seeds "
+                     "render_command": f"samples/galleries.py --profile {args.prior_dir.name} --seeds "
                                        + seed_ranges([_seed_of(d) for d in train_dirs + held_dirs]),
                      "views": n_views,
                      "heldout_prior_galleries": [d.name for d in held_dirs],
@@ -339,6 +342,11 @@ def main(argv=None) -> int:
             "ground_truth_use": "labels and metal masks of the prior galleries train it; evaluation scenes are "
                                 "other seeds and the bundled sample",
         }
+        init_card = args.init.with_suffix(".json") if args.init else None
+        if init_card is not None:  # fine-tuned: what the starting weights were trained on is part of its data
+            prev = json.loads(init_card.read_text()) if init_card.is_file() else {}
+            card["init"] = {"weights": str(args.init), "command": prev.get("command"), "data": prev.get("data"),
+                            "init": prev.get("init")}
         save_segmenter(args.save, net, {"card": args.save.with_suffix(".json").name, "summary": summary,
                                         "class_pixels": res.class_pixels, "class_balance": cfg.class_balance})
         tmp = args.save.with_suffix(".json.tmp")

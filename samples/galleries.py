@@ -25,6 +25,7 @@ Usage::
     python samples/galleries.py --profile validation --seeds all      # render the missing validation galleries
     python samples/galleries.py --profile prior --seeds 0-299         # training galleries for the priors
     python samples/galleries.py --profile light --seeds 500-699       # many small rooms for the light network
+    python samples/galleries.py --profile walls --seeds 400-479       # half of them papered/bricked/boarded (segmenter)
     python samples/galleries.py --profile validation --seeds all --status
 
     from galleries import VALIDATION_SEEDS, ensure_gallery
@@ -78,7 +79,10 @@ def config_hash(seed: int, profile: str = "validation") -> str:
     import procedural as pg
 
     opts = asdict(replace(_options(profile), progress=True, variant=None))
-    blob = json.dumps({"generator": pg.GENERATOR_VERSION, "config": pg.random_gallery(seed).to_dict(), "options": opts}, sort_keys=True)
+    if not opts["wall_patterns"]:  # added after galleries were cached: hashed only when set, so those stay valid
+        del opts["wall_patterns"]
+    cfg = pg.random_gallery(seed, wall_patterns=_options(profile).wall_patterns)
+    blob = json.dumps({"generator": pg.GENERATOR_VERSION, "config": cfg.to_dict(), "options": opts}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -140,7 +144,7 @@ def ensure_gallery(seed: int, profile: str = "validation", root: str | Path | No
         tmp = final.parent / f".tmp-seed_{int(seed)}-{os.getpid()}"
         shutil.rmtree(tmp, ignore_errors=True)
         t0 = time.time()
-        summary = rg.render_gallery(pg.random_gallery(int(seed)), tmp, opts)
+        summary = rg.render_gallery(pg.random_gallery(int(seed), wall_patterns=opts.wall_patterns), tmp, opts)
         stamp = {"hash": want, "seed": int(seed), "profile": profile, "generator": pg.GENERATOR_VERSION,
                  "seconds": round(time.time() - t0, 1), "rendered_at": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": summary}
         (tmp / "stamp.json").write_text(json.dumps(stamp, indent=1) + "\n")

@@ -12,7 +12,8 @@ import numpy as np
 
 __all__ = [
     "painting_texture", "plank_texture", "stone_texture", "twisted_sculpture_mesh", "write_ply", "sky_environment",
-    "canvas_texture", "floor_texture", "lathe_mesh", "vase_profile", "bowl_profile", "periodic_noise",
+    "canvas_texture", "floor_texture", "wall_texture", "WALL_PATTERNS", "lathe_mesh", "vase_profile", "bowl_profile",
+    "periodic_noise",
 ]
 
 
@@ -293,6 +294,124 @@ def floor_texture(kind: str, seed: int, tone: tuple[float, float, float], size: 
         n = 0.6 * periodic_noise(rng, size, 0.6) + 0.4 * periodic_noise(rng, size, 12.0)
         weave = 0.04 * np.sin(2 * math.pi * xx * 64 / size) * np.sin(2 * math.pi * yy * 64 / size)
         img = base[None, None] * (1.0 + 0.25 * n + weave)[..., None]
+    return _srgb_to_lin(np.clip(img, 0, 1))
+
+
+WALL_PATTERNS = ("floral", "damask", "stripes", "dots", "brick", "panels", "plaster")
+"""Kinds of :func:`wall_texture`: patterned papers, brick, boarding and rough plaster — the walls real rooms have
+beside paint (a segmenter trained on plain walls calls a papered wall a painting)."""
+
+
+def _soft(d: np.ndarray, width: float = 1.0) -> np.ndarray:
+    """Anti-aliased inside test: 1 where the signed distance ``d`` (pixels, < 0 inside) is well inside, 0 outside."""
+    return np.clip(0.5 - d / max(width, 1e-6), 0.0, 1.0).astype(np.float32)
+
+
+def _wrap_delta(a: np.ndarray, c: float, size: int) -> np.ndarray:
+    """Shortest signed distance from ``c`` to ``a`` on a circle of ``size`` pixels (the tile wraps)."""
+    return (a - c + size / 2) % size - size / 2
+
+
+def wall_texture(kind: str, seed: int, tone: tuple[float, float, float], size: int = 512) -> np.ndarray:
+    """A tileable wall texture for one square tile (the wall's ``uv_scale`` sets its size in metres), linear RGB
+    float32 [size, size, 3]; rows run along the wall's height, columns along its length.
+
+    Kinds (:data:`WALL_PATTERNS`): ``floral`` (a half-drop repeat of blooms and leaves on a pale or dark ground),
+    ``damask`` (a mirrored motif a shade off the ground), ``stripes`` (vertical bands of two or three tones),
+    ``dots`` (a lattice of spots or diamonds), ``brick`` (courses with mortar), ``panels`` (vertical boards),
+    ``plaster`` (mottled render). ``tone`` is the ground's sRGB colour; the other colours are drawn from ``seed``.
+    """
+    if kind not in WALL_PATTERNS:
+        raise ValueError(f"unknown wall pattern {kind!r}: choose one of {WALL_PATTERNS}")
+    rng = np.random.default_rng(seed + 909)
+    base = np.clip(np.asarray(tone, np.float32), 0.0, 1.0)
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
+    img = np.broadcast_to(base, (size, size, 3)).copy()
+
+    def paint(mask: np.ndarray, colour) -> None:
+        img[:] = img * (1.0 - mask[..., None]) + np.asarray(colour, np.float32) * mask[..., None]
+
+    if kind == "floral":
+        per = int(rng.integers(1, 3))  # motifs per tile side (half-drop repeat)
+        cell = size / per
+        hues = rng.uniform(0, 1, 2)
+        bloom = _hsv_rgb(hues[0], rng.uniform(0.3, 0.8), rng.uniform(0.45, 0.9))
+        leaf = _hsv_rgb(rng.uniform(0.2, 0.45), rng.uniform(0.25, 0.6), rng.uniform(0.3, 0.7))
+        centres = []
+        for i in range(per):
+            for j in range(per):
+                centres.append(((i + 0.5) * cell, (j + 0.25) * cell))
+                centres.append(((i + 1.0) * cell % size, (j + 0.75) * cell))  # the half drop
+        for cx, cy in centres:
+            cx, cy = cx + rng.uniform(-0.08, 0.08) * cell, cy + rng.uniform(-0.08, 0.08) * cell
+            r = cell * rng.uniform(0.12, 0.24)
+            for _ in range(int(rng.integers(1, 4))):  # leaves around the bloom
+                a = rng.uniform(0, 2 * math.pi)
+                lx, ly = cx + 1.2 * r * math.cos(a), cy + 1.2 * r * math.sin(a)
+                dx, dy = _wrap_delta(xx, lx, size), _wrap_delta(yy, ly, size)
+                u, v = dx * math.cos(a) + dy * math.sin(a), -dx * math.sin(a) + dy * math.cos(a)
+                paint(_soft((np.sqrt((u / (0.9 * r)) ** 2 + (v / (0.35 * r)) ** 2) - 1.0) * 0.35 * r), leaf)
+            dx, dy = _wrap_delta(xx, cx, size), _wrap_delta(yy, cy, size)
+            rad, ang = np.sqrt(dx ** 2 + dy ** 2), np.arctan2(dy, dx)
+            petals = int(rng.integers(4, 8))
+            outline = r * (0.8 + 0.2 * np.cos(petals * ang + rng.uniform(0, 6.3)))
+            paint(_soft(rad - outline), bloom)
+            for k, f in enumerate((0.65, 0.35)):  # darker whorls inside
+                ring = np.abs(rad - f * r * (1.0 + 0.15 * np.sin(3 * ang + k))) - 0.05 * r
+                paint(_soft(ring) * 0.7, bloom * rng.uniform(0.45, 0.75))
+    elif kind == "damask":
+        per = int(rng.integers(2, 4))
+        m = 128
+        half = periodic_noise(rng, m, m / 14.0)[:, : m // 2]
+        motif = np.concatenate([half, half[:, ::-1]], 1)  # mirrored left-right, as damask is
+        fy, fx = np.meshgrid(np.linspace(-1, 1, m), np.linspace(-1, 1, m), indexing="ij")
+        shape = ((motif + 0.6 * (1.0 - np.sqrt(fx ** 2 + fy ** 2))) > rng.uniform(0.15, 0.35)).astype(np.float32)
+        iy = ((yy * per / size) % 1.0 * m).astype(int)
+        ix = ((xx * per / size) % 1.0 * m).astype(int)
+        tile = shape[iy, ix]
+        shade = rng.choice([0.75, 0.85, 1.15, 1.3])
+        paint(tile, np.clip(base * shade + rng.uniform(-0.03, 0.03, 3), 0, 1))
+    elif kind == "stripes":
+        n = int(rng.choice([4, 6, 8, 12, 16]))
+        edges = np.sort(rng.uniform(0, 1, n)) * size
+        tones = [base, np.clip(base * rng.uniform(0.6, 0.9) + rng.uniform(-0.05, 0.05, 3), 0, 1),
+                 _hsv_rgb(rng.uniform(0, 1), rng.uniform(0.2, 0.6), rng.uniform(0.3, 0.85))]
+        band = np.searchsorted(edges, xx[0]) % n
+        which = rng.integers(0, 3, n)
+        for b in range(n):
+            paint((band == b).astype(np.float32)[None, :].repeat(size, 0), tones[int(which[b])])
+    elif kind == "dots":
+        per = int(rng.choice([6, 8, 10, 14]))
+        cell = size / per
+        colour = _hsv_rgb(rng.uniform(0, 1), rng.uniform(0.2, 0.8), rng.uniform(0.2, 0.9))
+        fx, fy = (xx % cell) - cell / 2, (yy % cell) - cell / 2
+        r = cell * rng.uniform(0.12, 0.3)
+        d = (np.abs(fx) + np.abs(fy) - 1.3 * r) if rng.uniform() < 0.5 else (np.sqrt(fx ** 2 + fy ** 2) - r)
+        paint(_soft(d), colour)
+    elif kind == "brick":
+        courses = int(rng.choice([8, 10, 12, 16]))
+        h = size / courses
+        row = (yy // h).astype(int)
+        bw = 2.0 * h * rng.uniform(1.6, 2.2)
+        per_row = max(2, int(round(size / bw)))
+        bw = size / per_row
+        col = ((xx + (row % 2) * bw / 2) // bw).astype(int) % per_row
+        ids = row * per_row + col
+        brick = np.clip(base[None] * rng.uniform(0.8, 1.15, (courses * per_row, 1)) + rng.uniform(-0.03, 0.03, (courses * per_row, 3)), 0, 1)
+        img[:] = brick[ids] * (1.0 + 0.08 * periodic_noise(rng, size, 1.0))[..., None]
+        mortar = ((yy % h) < 2.5) | (((xx + (row % 2) * bw / 2) % bw) < 2.5)
+        paint(mortar.astype(np.float32), np.clip(np.full(3, rng.uniform(0.55, 0.85)), 0, 1))
+    elif kind == "panels":
+        boards = int(rng.integers(4, 10))
+        col = (xx * boards // size).astype(int)
+        grain = periodic_noise(rng, size, 1.2)
+        grain = 0.7 * grain.mean(0, keepdims=True) / (np.abs(grain.mean(0)).max() + 1e-6) + 0.3 * grain  # grain along y
+        tones = np.clip(base[None] * rng.uniform(0.85, 1.12, (boards, 1)), 0, 1)
+        img[:] = tones[col] * (1.0 + 0.15 * grain)[..., None]
+        paint(((xx * boards) % size < max(2, size // 200)).astype(np.float32), base * 0.5)
+    else:  # plaster
+        n = periodic_noise(rng, size, 18.0) + 0.5 * periodic_noise(rng, size, 3.0) + 0.3 * periodic_noise(rng, size, 0.8)
+        img[:] = base[None, None] * (1.0 + rng.uniform(0.08, 0.2) * n)[..., None]
     return _srgb_to_lin(np.clip(img, 0, 1))
 
 

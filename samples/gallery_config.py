@@ -40,7 +40,8 @@ class Material:
     metallic: float = 0.0
     texture: str = ""
     """Procedural base-colour texture: ``""`` (none), ``canvas`` (args: seed, style, aspect), ``floor`` (args: kind,
-    seed, r, g, b sRGB tone), ``sample_painting`` / ``sample_planks`` / ``sample_stone`` (args: seed), ``stone``
+    seed, r, g, b sRGB tone), ``wall`` (args: pattern, seed, r, g, b sRGB ground; ``gallery_assets.wall_texture``),
+    ``sample_painting`` / ``sample_planks`` / ``sample_stone`` (args: seed), ``stone``
     (args: seed)."""
     texture_args: tuple = ()
     uv_scale: Vec2 = (1.0, 1.0)

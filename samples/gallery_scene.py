@@ -34,6 +34,7 @@ from gallery_assets import (  # noqa: E402
     stone_texture,
     twisted_sculpture_mesh,
     vase_profile,
+    wall_texture,
     write_ply,
 )
 from procedural import (  # noqa: E402
@@ -218,6 +219,8 @@ def _texture_image(mat: Material, cache: dict) -> np.ndarray:
             cache[key] = canvas_texture(int(a[0]), str(a[1]), float(a[2]))
         elif mat.texture == "floor":
             cache[key] = floor_texture(str(a[0]), int(a[1]), (float(a[2]), float(a[3]), float(a[4])))
+        elif mat.texture == "wall":
+            cache[key] = wall_texture(str(a[0]), int(a[1]), (float(a[2]), float(a[3]), float(a[4])))
         else:
             raise ConfigError(f"unknown texture {mat.texture!r}")
     return cache[key]

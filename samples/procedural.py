@@ -18,11 +18,15 @@ skylights, or open top); 1–5 paintings (4 canvas styles, roughness U(0.5, 0.95
 (metallic 1), wood or glass-covered frames, wall plaques; 0–3 pedestals (stone, wood, painted) with a metal or
 ceramic exhibit (twisted sculpture, vase, bowl, sphere, box), sometimes in a glass case; a bench and a sign stand;
 the HDR probe, its rotation and tint, 0–4 lamps (spots on paintings, points, ceiling panels), the lamps' share of
-the light and the target exposure; the camera's field of view; RGB or RGBA (alpha 255) PNGs.
+the light and the target exposure; the camera's field of view; RGB or RGBA (alpha 255) PNGs. With
+``random_gallery(seed, wall_patterns=p)`` (the ``walls`` render profile) a room's walls are papered (floral, damask,
+stripes, dots), bricked, boarded or plastered with chance ``p``; ``p = 0`` (every other profile) leaves each seed's
+room as it always was.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -297,13 +301,48 @@ def _draw_lighting(rng: np.random.Generator, room: Room, paintings: tuple[Painti
                     lamp_share=share, target_mean_srgb=float(rng.uniform(0.3, 0.5)))
 
 
-def random_gallery(seed: int) -> GalleryConfig:
+def _linear_to_srgb(c) -> tuple[float, float, float]:
+    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
+    return tuple(float(v) for v in np.where(c <= 0.0031308, c * 12.92, 1.055 * c ** (1 / 2.4) - 0.055))
+
+
+def _pattern_walls(rng: np.random.Generator, room: Room, p: float) -> Room:
+    """With probability ``p``, paper the room (all four walls, or one accent wall) with a pattern of
+    ``gallery_assets.WALL_PATTERNS`` on the wall's own paint as its ground, in square tiles of 0.3-1.2 m."""
+    from gallery_assets import WALL_PATTERNS
+
+    if not rng.uniform() < p:
+        return room
+    kind = str(rng.choice(WALL_PATTERNS))
+    tile = float(rng.uniform(0.6, 1.2) if kind in ("brick", "panels") else rng.uniform(0.3, 1.0))
+    tex_seed = int(rng.integers(1 << 30))
+    accent = int(rng.integers(4)) if rng.uniform() < 0.35 else None
+    mats = list(room.wall_materials)
+    for k, (wall, mat) in enumerate(zip(room.walls, room.wall_materials)):
+        if accent is not None and k != accent:
+            continue
+        length = (room.x[1] - room.x[0]) if wall in ("north", "south") else (room.y[1] - room.y[0])
+        height = room.height + (room.well_depth if room.ceiling else 0.0)
+        mats[k] = Material(roughness=mat.roughness, texture="wall", texture_args=(kind, tex_seed, *_linear_to_srgb(mat.base_color)),
+                           uv_scale=(float(length / tile), float(height / tile)))
+    return dataclasses.replace(room, wall_materials=tuple(mats))
+
+
+def random_gallery(seed: int, wall_patterns: float = 0.0) -> GalleryConfig:
     """Draw a closed gallery room from ``seed`` (deterministic: the same seed gives the same config on any machine
-    with the same numpy). Each component has its own random stream, so e.g. the lamps do not move the paintings."""
+    with the same numpy). Each component has its own random stream, so e.g. the lamps do not move the paintings.
+
+    ``wall_patterns``: the chance that the room's walls are papered, bricked or boarded (:func:`_pattern_walls`)
+    rather than painted. 0 (the default: the validation galleries) draws nothing from that stream, so a seed's room is
+    the same as before the option existed."""
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    if not 0.0 <= wall_patterns <= 1.0:
+        raise ValueError(f"wall_patterns is a probability in [0, 1], got {wall_patterns!r}")
     stream = lambda k: np.random.default_rng([int(seed), 0x6A11E, k])  # noqa: E731
     room = _draw_room(stream(1))
+    if wall_patterns > 0:
+        room = _pattern_walls(stream(7), room, wall_patterns)
     paintings = _draw_paintings(stream(2), room)
     pedestals = _draw_pedestals(stream(3), room)
     fixtures = _draw_fixtures(stream(4), room, pedestals)

@@ -204,6 +204,9 @@ class RenderOptions:
     variant: str | None = None
     write_hdr: bool = True
     progress: bool = True
+    wall_patterns: float = 0.0
+    """Chance that a procedural room's walls are papered, bricked or boarded (``procedural.random_gallery``); 0 keeps
+    every seed's room as it was before the option (the validation galleries)."""
 
 
 PROFILES: dict[str, RenderOptions] = {
@@ -212,13 +215,16 @@ PROFILES: dict[str, RenderOptions] = {
                            target_noise_db=None, gt_subsamples=2, probe_face=32, probe_spp=64),
     "sample": RenderOptions(profile="sample", size=128, n_train=80, n_test=20, spp_per_pass=400, min_passes=1, max_passes=1,
                             target_noise_db=None, box=True),
+    "walls": RenderOptions(profile="walls", size=160, n_train=10, n_test=2, spp_per_pass=24, min_passes=2, max_passes=2,
+                           target_noise_db=None, gt_subsamples=2, probe_face=32, probe_spp=64, wall_patterns=0.5),
     "light": RenderOptions(profile="light", size=64, n_train=8, n_test=0, spp_per_pass=16, min_passes=2, max_passes=2,
                            target_noise_db=None, gt_subsamples=1, probe_face=24, probe_spp=48),
     "tiny": RenderOptions(profile="tiny", size=24, n_train=2, n_test=1, spp_per_pass=4, min_passes=2, max_passes=2,
                           target_noise_db=None, gt_subsamples=2, probe_face=8, probe_spp=4, progress=False),
 }
 """Named profiles. ``sample`` reproduces ``samples/gallery``; ``prior`` trains the segmenter and the light network;
-``light`` is many small rooms for the light network (64 px, the network's input size; 8 views; no test split);
+``walls`` is ``prior`` with half the rooms' walls patterned (wallpaper, brick, boarding, plaster: the segmenter's
+fine-tuning data, 2026-12-06); ``light`` is many small rooms for the light network (64 px, the network's input size; 8 views; no test split);
 ``tiny`` is for tests."""
 
 
@@ -729,7 +735,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     preset = args.preset or ("procedural" if args.seed is not None else "sample")
     if preset == "procedural" and args.seed is None:
         ap.error("--preset procedural needs --seed")
-    cfg = random_gallery(args.seed) if preset == "procedural" else GalleryConfig.sample(args.seed or 0)
+    prof = PROFILES[args.profile] if args.profile else None
+    cfg = (random_gallery(args.seed, wall_patterns=prof.wall_patterns if prof else 0.0) if preset == "procedural"
+           else GalleryConfig.sample(args.seed or 0))
     if args.print_config:
         print(json.dumps(cfg.to_dict(), indent=1))
         return 0

@@ -588,6 +588,47 @@ def test_seed_lists_are_disjoint_and_validation_is_held_out():
         galleries.config_hash(0, "nope")
 
 
+def test_wall_patterns_paper_some_rooms_and_leave_the_rest_as_they_were():
+    from gallery_assets import WALL_PATTERNS, wall_texture
+
+    for kind in WALL_PATTERNS:
+        a = wall_texture(kind, 3, (0.8, 0.75, 0.7), size=64)
+        assert a.shape == (64, 64, 3) and a.dtype == np.float32 and 0.0 <= a.min() and a.max() <= 1.0, kind
+        assert np.array_equal(a, wall_texture(kind, 3, (0.8, 0.75, 0.7), size=64)), kind  # seeded
+        if kind != "plaster":  # a pattern, not a plain wall: some texels differ from the ground by a visible step
+            assert (np.abs(a - np.median(a.reshape(-1, 3), 0)).max(-1) > 0.05).mean() > 0.02, kind
+    with pytest.raises(ValueError, match="unknown wall pattern"):
+        wall_texture("tartan", 0, (0.5, 0.5, 0.5))
+    # 0 draws nothing: every seed's room (and so the cached validation galleries' hashes) stays as it was
+    for seed in (0, 5, 1000000):
+        assert pg.random_gallery(seed, wall_patterns=0.0) == pg.random_gallery(seed)
+    import hashlib
+    from dataclasses import asdict, replace
+
+    opts = asdict(replace(rg.PROFILES["prior"], progress=True, variant=None))
+    del opts["wall_patterns"]  # the hash as it was computed before the option existed
+    old = json.dumps({"generator": pg.GENERATOR_VERSION, "config": pg.random_gallery(3).to_dict(), "options": opts}, sort_keys=True)
+    assert galleries.config_hash(3, "prior") == hashlib.sha256(old.encode()).hexdigest()[:16]
+    assert galleries.config_hash(7, "walls") != galleries.config_hash(7, "prior")
+    papered = 0
+    for seed in range(30):
+        cfg = pg.random_gallery(seed, wall_patterns=1.0)
+        pg.check_config(cfg)
+        base = pg.random_gallery(seed)
+        assert cfg.paintings == base.paintings and cfg.lighting == base.lighting  # only the walls change
+        walls = [m for m in cfg.room.wall_materials if m.texture == "wall"]
+        assert walls, seed  # p = 1: every room is papered (all four walls or one accent wall)
+        papered += len(walls) == 4
+        for m, wall in zip(cfg.room.wall_materials, cfg.room.walls):
+            if m.texture != "wall":
+                continue
+            length = np.ptp(cfg.room.x) if wall in ("north", "south") else np.ptp(cfg.room.y)
+            assert m.texture_args[0] in WALL_PATTERNS and 0.3 <= length / m.uv_scale[0] <= 1.2 + 1e-9  # square tiles of 0.3-1.2 m
+    assert 10 <= papered <= 28  # accent walls are the minority
+    with pytest.raises(ValueError, match="probability"):
+        pg.random_gallery(0, wall_patterns=1.5)
+
+
 def test_procedural_assets():
     from gallery_assets import canvas_texture, floor_texture, lathe_mesh, vase_profile
 
