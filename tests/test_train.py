@@ -314,6 +314,43 @@ def test_depth_normal_loss_follows_the_rendered_depth_not_the_head():
     assert float(depth_normal_loss(pts, facing, dirs, torch.zeros(1, s, s))) == 0.0
 
 
+def test_albedo_smoothness_leaves_photo_edges_free_and_flattens_the_rest():
+    """A lamp pool on a plain wall (the photo brightens smoothly) must not be in the albedo: an albedo that follows it
+    costs more than a flat one; an albedo edge where the photo has one costs nothing; the gradient reaches only the
+    albedo; the term is trained and logged through ``dars train --albedo-smooth``."""
+    from toolkit.losses import albedo_smoothness_loss
+
+    s = 8
+    ramp = torch.linspace(0.3, 0.45, s)  # 5 % brighter per pixel: a smooth pool of light
+    photo = ramp.view(1, 1, s, 1).expand(1, s, s, 3).clone()
+    w = torch.ones(1, s, s)
+    flat = torch.full((1, s, s, 3), 0.5)
+    follows = (flat * ramp.view(1, 1, s, 1) / 0.3).clamp(0, 1)
+    assert float(albedo_smoothness_loss(flat, photo, w)) == 0.0
+    assert float(albedo_smoothness_loss(follows, photo, w)) > 0.01
+    edge_photo = torch.where(torch.arange(s).view(1, 1, s, 1) < s // 2, 0.1, 0.6).expand(1, s, s, 3).float()
+    edge_albedo = torch.where(torch.arange(s).view(1, 1, s, 1) < s // 2, 0.1, 0.6).expand(1, s, s, 3).float()
+    assert float(albedo_smoothness_loss(edge_albedo, edge_photo, w)) == pytest.approx(0.0, abs=1e-6)
+    assert float(albedo_smoothness_loss(edge_albedo, photo, w)) > 0.0  # the same step where the photo is smooth
+    a = follows.clone().requires_grad_(True)
+    p = photo.clone().requires_grad_(True)
+    albedo_smoothness_loss(a, p, w).backward()
+    assert float(a.grad.abs().sum()) > 0 and (p.grad is None or float(p.grad.abs().max()) == 0.0)
+    assert float(albedo_smoothness_loss(follows, photo, torch.zeros(1, s, s))) == 0.0
+
+
+def test_albedo_smooth_option_trains_and_is_logged(tiny, tmp_path):
+    import dataclasses
+
+    cfg = _small(steps=6)
+    cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, albedo_smooth=0.2))  # tiny is an object
+    train(tiny, tmp_path / "run", cfg, progress_bar=False, log=lambda m: None)
+    rows = [json.loads(x) for x in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert any("albedo_smooth" in r for r in rows)
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())["config"]["losses"]
+    assert saved["albedo_smooth"] == 0.2
+
+
 def test_sparse_depth_option_trains_and_is_recorded(sample_scene_path, tmp_path):
     """`losses.sparse_depth` > 0: targets triangulated from the photos, the term is logged, the weight recorded."""
     import dataclasses
@@ -390,7 +427,8 @@ def test_room_geometry_losses_follow_the_scene_type(sample_scene_path):
 
     scene = load_scene(sample_scene_path, "train")
     keys = tuple(ROOM_LOSSES)
-    assert set(keys) == {"sparse_depth", "opacity", "depth_normal", "layout_depth", "orientation", "layout_normal"}
+    assert set(keys) == {"sparse_depth", "opacity", "depth_normal", "layout_depth", "orientation", "layout_normal",
+                         "albedo_smooth"}
     assert make_config("fast", steps=1).losses.orientation is None and OBJECT_LOSSES == {"orientation": 0.1}
     assert all(v > 0 for v in ROOM_LOSSES.values())
     room, _ = resolve_config(make_config("fast", steps=1), scene)

@@ -27,7 +27,9 @@ Readings of the paper, documented:
   the semi-transparent fog and floaters an unbounded scene otherwise grows in front of textureless walls. For a
   room (:data:`toolkit.train.config.ROOM_LOSSES`): the sparse-depth loss (:func:`sparse_depth_loss`), the opacity
   loss and the depth-normal loss (:func:`depth_normal_loss`): the rendered normal follows the normal of the rendered
-  depth map, so the normal head cannot settle on a direction that merely dims the shading. Off by default for every
+  depth map, so the normal head cannot settle on a direction that merely dims the shading; and the albedo
+  smoothness prior (:func:`albedo_smoothness_loss`): where the photo changes smoothly the albedo stays flat, and
+  the light's per-point residual takes the change. Off by default for every
   scene: the planarity loss (``planar``, :func:`planarity_loss` on :func:`toolkit.regions.textureless_regions`).
 """
 
@@ -43,7 +45,7 @@ from .scene import UNLABELLED
 __all__ = ["LossWeights", "rgb_l1", "psnr_loss", "ssim_loss", "material_loss", "semantic_loss",
            "normal_consistency_loss", "depth_normal_loss", "depth_normals", "orientation_loss", "sparse_depth_loss",
            "layout_normal_loss", "planarity_loss",
-           "light_residual_loss", "compactness_loss",
+           "light_residual_loss", "compactness_loss", "albedo_smoothness_loss",
            "PAINTING", "METAL_TARGET", "PAINTING_ROUGHNESS"]
 
 PAINTING = 0
@@ -92,6 +94,11 @@ class LossWeights:
     the room's box must be the inward normal of the face their ray leaves through (a wall's is horizontal, the
     floor's up), :func:`layout_normal_loss`. Nothing here is ground truth: the faces and the pixels come from the
     photometric sweep and the predicted labels. 0 = off; None = by scene type, as ``opacity``."""
+    albedo_smooth: float | None = None
+    """Ours (Retinex's prior, our form): neighbouring pixels of the SSIM patches whose photo barely changes share one
+    albedo (:func:`albedo_smoothness_loss`), so a smooth change of brightness across a wall is left to the light (the
+    per-point residual) rather than painted into the albedo. 0 = off; None = by scene type, as ``opacity`` (0.2 for
+    a room since 2026-12-06: README, "Albedo that does not follow the light")."""
     planar: float = 0.0
     """Ours (StructNeRF's planar constraint, our form): the rendered points of each large textureless region of a
     photo (:func:`toolkit.regions.textureless_regions`: plain walls, floors) lie on one plane,
@@ -271,6 +278,33 @@ def light_residual_loss(residual: torch.Tensor, l_env: torch.Tensor, weights: to
     w = weights.detach()
     scale = l_env.detach().square().sum() / 9.0 + 1e-6
     return (residual.square().sum((-1, -2)) * w).sum() / (w.sum().clamp_min(1e-12) * scale)
+
+
+def albedo_smoothness_loss(albedo: torch.Tensor, photo_linear: torch.Tensor, weights: torch.Tensor,
+                           sigma: float = 0.1) -> torch.Tensor:
+    """Retinex's prior on s x s patches: ``Σ w e^{-(Δ/σ)²} |a_p − a_q|₁ / Σ w`` over horizontally and vertically
+    neighbouring pixels p, q, with Δ the largest per-channel change of the photo's log radiance between them. Where
+    the photo steps (an edge of a painting, a seam) the pair is free; where it is smooth, the albedo must be too, and
+    what brightness change there is must come from the light.
+
+    Args:
+        albedo: float [P, s, s, 3] rendered albedo.
+        photo_linear: float [P, s, s, 3] the photos' linear radiance at the same pixels.
+        weights: float [P, s, s] per-pixel weights (opacity x importance; constants here).
+        sigma: the change of log radiance (≈ relative change) at which a pair counts as an edge (e^-1).
+    """
+    logi = torch.log(photo_linear.detach().clamp_min(1e-3))
+    w = weights.detach()
+    num = albedo.new_zeros(())
+    den = albedo.new_zeros(())
+    s = albedo.shape[1]
+    for dim in (1, 2):
+        step = (logi.narrow(dim, 1, s - 1) - logi.narrow(dim, 0, s - 1)).abs().amax(-1)
+        pair = torch.minimum(w.narrow(dim, 1, s - 1), w.narrow(dim, 0, s - 1)) * torch.exp(-(step / sigma) ** 2)
+        da = (albedo.narrow(dim, 1, s - 1) - albedo.narrow(dim, 0, s - 1)).abs().mean(-1)
+        num = num + (pair * da).sum()
+        den = den + pair.sum()
+    return num / den.clamp_min(1e-12)
 
 
 def compactness_loss(weights: torch.Tensor, s_starts: torch.Tensor, s_ends: torch.Tensor, ray_indices: torch.Tensor,

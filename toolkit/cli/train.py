@@ -81,6 +81,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="weight of the planarity loss: the rendered points of each large textureless region of a "
                         "photo (plain walls, floors) lie on one plane (default: 0 = off; README, \"A planarity prior for "
                         "textureless regions\")")
+    q.add_argument("--albedo-smooth", type=NONNEGATIVE, default=None, metavar="W",
+                   help="weight of the albedo smoothness prior (Retinex's): neighbouring pixels whose photo barely "
+                        "changes share one albedo, so a smooth change of brightness goes to the light (default: "
+                        "0.2 for a room, 0 for an object; 0 = off)")
     q.add_argument("--layout-depth", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the room-layout loss: rays through the photos' large textureless regions end on "
                         "the room's box, found by a photometric plane sweep before the first step (toolkit.layout; "
@@ -152,7 +156,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 _LOSS_OPTIONS = (("opacity-loss", "opacity_loss", "opacity"), ("sparse-depth", "sparse_depth", "sparse_depth"),
                  ("depth-normal", "depth_normal", "depth_normal"), ("planar-loss", "planar_loss", "planar"),
                  ("layout-depth", "layout_depth", "layout_depth"), ("layout-normal", "layout_normal", "layout_normal"),
-                 ("orientation", "orientation", "orientation"))
+                 ("orientation", "orientation", "orientation"), ("albedo-smooth", "albedo_smooth", "albedo_smooth"))
 """Loss-weight options of ``dars train``: (flag, argparse attribute, ``LossWeights`` field); None = by scene type."""
 
 _RESUME_OPTIONS = (

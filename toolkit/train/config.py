@@ -257,10 +257,10 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
 
 
 ROOM_LOSSES = {"sparse_depth": 0.1, "opacity": 0.1, "depth_normal": 0.5, "layout_depth": 0.1, "orientation": 1.0,
-               "layout_normal": 0.1}
+               "layout_normal": 0.1, "albedo_smooth": 0.2}
 """Loss weights that :func:`resolve_config` gives a room (``unbounded``) where the config leaves them None: the
 geometry terms measured on the validation galleries (README, "Geometry of a room", "A room box from the photos" and
-"Normals that face the camera"). An object on a transparent background gets :data:`OBJECT_LOSSES`' weight where it
+"Normals that face the camera"; the albedo prior: "Albedo that does not follow the light"). An object on a transparent background gets :data:`OBJECT_LOSSES`' weight where it
 has one, else 0 (the opacity loss would fill its background; the others are not measured there)."""
 
 OBJECT_LOSSES = {"orientation": 0.1}

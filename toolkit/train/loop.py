@@ -92,7 +92,7 @@ def _plot_curves(log_path: Path, out: Path) -> None:
     if not rows:
         return
     keys = [k for k in ("loss", "rgb", "ssim", "psnr_loss", "mat", "eikonal", "orientation", "semantic", "light_reg",
-                        "distortion", "layout_depth", "layout_normal") if any(k in r for r in rows)]
+                        "distortion", "layout_depth", "layout_normal", "albedo_smooth") if any(k in r for r in rows)]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for k in keys:
         xs = [r["step"] for r in rows if k in r]

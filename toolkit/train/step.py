@@ -14,9 +14,9 @@ from torch import nn
 from .._checks import DarsError
 from ..field import DarsField
 from ..io import linear_to_srgb, srgb_to_linear
-from ..losses import (compactness_loss, depth_normal_loss, light_residual_loss, material_loss, normal_consistency_loss,
-                      layout_normal_loss, orientation_loss, planarity_loss, psnr_loss, rgb_l1, semantic_loss,
-                      sparse_depth_loss, ssim_loss)
+from ..losses import (albedo_smoothness_loss, compactness_loss, depth_normal_loss, layout_normal_loss, light_residual_loss,
+                      material_loss, normal_consistency_loss, orientation_loss, planarity_loss, psnr_loss, rgb_l1,
+                      semantic_loss, sparse_depth_loss, ssim_loss)
 from ..pipeline import Background, DarsContext, RenderConfig, RenderInputs, render_rays
 from ..pixels import PackedViews
 from ..sampling import OccupancyGrid, build_ray_sampler, neighbour_views, select_rays
@@ -297,7 +297,7 @@ def sample_batch(state: TrainState, data: TrainData) -> Batch:
     lay = data.weights  # the views' sizes
     s = cfg.ssim_patch_size
     fits = int(lay.heights.min()) > s and int(lay.widths.min()) > s
-    patches_used = cfg.losses.ssim > 0 or (cfg.losses.depth_normal or 0.0) > 0
+    patches_used = cfg.losses.ssim > 0 or (cfg.losses.depth_normal or 0.0) > 0 or (cfg.losses.albedo_smooth or 0.0) > 0
     P = cfg.ssim_patches if (patches_used and fits) else 0
     n_rand = cfg.batch_rays - P * s * s
     idx, iw = select_rays(state.ray_sampler, n_rand, gen)
@@ -451,6 +451,13 @@ def train_step(state: TrainState, data: TrainData) -> dict:
             terms["ssim"] = ssim_loss(pp, tp, batch.patch_iw)
         if (lw.depth_normal or 0.0) > 0:
             terms["depth_normal"] = _depth_normal_term(out, batch, s)
+        if (lw.albedo_smooth or 0.0) > 0 and out.albedo is not None:
+            n0 = batch.n_random
+            photo = batch.target[n0:]
+            photo = srgb_to_linear(photo) if data.scene.srgb else photo
+            terms["albedo_smooth"] = albedo_smoothness_loss(
+                out.albedo[n0:].reshape(P, s, s, 3), photo.reshape(P, s, s, 3),
+                (out.opacity[n0:] * batch.iw[n0:]).reshape(P, s, s))
     if cfg.shading == "pbr" and lw.mat > 0:
         terms["mat"] = material_loss(out.albedo, out.roughness, out.metallic,
                                      batch.labels if cfg.mat_labels else None, batch.metal,
@@ -501,7 +508,7 @@ def train_step(state: TrainState, data: TrainData) -> dict:
               "orientation": lw.orientation, "semantic": lw.semantic, "light_reg": lw.light_reg, "colour_reg": lw.colour_reg,
               "compactness": lw.compactness, "opacity": lw.opacity, "sparse_depth": lw.sparse_depth,
               "depth_normal": lw.depth_normal, "planar": lw.planar, "layout_depth": lw.layout_depth,
-              "layout_normal": lw.layout_normal}
+              "layout_normal": lw.layout_normal, "albedo_smooth": lw.albedo_smooth}
     loss = sum(weight[k] * v for k, v in terms.items())
     if not torch.isfinite(loss):
         bad = [k for k, v in terms.items() if not torch.isfinite(v)]
