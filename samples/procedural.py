@@ -301,15 +301,11 @@ def _draw_lighting(rng: np.random.Generator, room: Room, paintings: tuple[Painti
                     lamp_share=share, target_mean_srgb=float(rng.uniform(0.3, 0.5)))
 
 
-def _linear_to_srgb(c) -> tuple[float, float, float]:
-    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
-    return tuple(float(v) for v in np.where(c <= 0.0031308, c * 12.92, 1.055 * c ** (1 / 2.4) - 0.055))
-
-
 def _pattern_walls(rng: np.random.Generator, room: Room, p: float) -> Room:
     """With probability ``p``, paper the room (all four walls, or one accent wall) with a pattern of
     ``gallery_assets.WALL_PATTERNS`` on the wall's own paint as its ground, in square tiles of 0.3-1.2 m."""
     from gallery_assets import WALL_PATTERNS
+    from toolkit.io import linear_to_srgb
 
     if not rng.uniform() < p:
         return room
@@ -321,9 +317,10 @@ def _pattern_walls(rng: np.random.Generator, room: Room, p: float) -> Room:
     for k, (wall, mat) in enumerate(zip(room.walls, room.wall_materials)):
         if accent is not None and k != accent:
             continue
-        length = (room.x[1] - room.x[0]) if wall in ("north", "south") else (room.y[1] - room.y[0])
+        length = wall_frame(room, wall)["length"]
         height = room.height + (room.well_depth if room.ceiling else 0.0)
-        mats[k] = Material(roughness=mat.roughness, texture="wall", texture_args=(kind, tex_seed, *_linear_to_srgb(mat.base_color)),
+        ground = linear_to_srgb(np.clip(np.asarray(mat.base_color, np.float64), 0.0, 1.0))
+        mats[k] = Material(roughness=mat.roughness, texture="wall", texture_args=(kind, tex_seed, *(float(v) for v in ground)),
                            uv_scale=(float(length / tile), float(height / tile)))
     return dataclasses.replace(room, wall_materials=tuple(mats))
 
