@@ -90,6 +90,102 @@ def gallery_source_summary(per_source: dict) -> dict | None:
     return out
 
 
+def _with_seeds(dirs: list[Path], spec: str | None) -> list[Path]:
+    """The gallery folders (``seed_N``) whose seed is in ``spec`` (``"0-35,81"``; None: all of them)."""
+    if not spec:
+        return dirs
+    want = set()
+    for part in spec.split(","):
+        a, _, b = part.partition("-")
+        want |= set(range(int(a), int(b or a) + 1))
+    return [d for d in dirs if d.name[5:].isdigit() and int(d.name[5:]) in want]
+
+
+def _trained_seeds(weights: Path) -> set[int] | None:
+    """The gallery seeds a network's card (``FILE.json`` beside ``FILE.pt``) lists as trained on, or None (no card)."""
+    card = weights.with_suffix(".json")
+    if not card.is_file():
+        return None
+    gal = (json.loads(card.read_text()).get("galleries") or {})
+    return {int(s) for seeds in (gal.get("train_seeds_by_probe") or {}).values() for s in seeds}
+
+
+def _score_only(args) -> int:
+    """``--score-only``: Env-light L2 of a trained network on galleries it was not trained on, per source and per
+    gallery, with the baselines, the network / grey-ambient ratio and the galleries where it is worse than zero light."""
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from toolkit._checks import DarsError
+    from toolkit.lightnet import (DEFAULT_WEIGHTS, LightDataset, evaluate_lightnet, gallery_dirs,
+                                  light_dataset_from_galleries, load_lightnet, predict_sh)
+    from toolkit.io import srgb_to_linear
+    from toolkit.metrics import env_light_l2
+    from toolkit.train import grey_ambient_sh
+
+    weights = Path(args.weights).expanduser() if args.weights else DEFAULT_WEIGHTS
+    try:
+        model = load_lightnet(weights)
+        dirs = _with_seeds(gallery_dirs(*args.galleries), args.seeds)
+        ds = light_dataset_from_galleries(dirs, model.cfg.input_size, progress=not args.json)
+    except DarsError as e:
+        print(f"bench_lightnet: error: {e}", file=sys.stderr)
+        return 2
+    trained = _trained_seeds(weights)
+    info = ds.meta["galleries"]
+    seen = [i for i, g in enumerate(info) if trained is not None and g["seed"] is not None and int(g["seed"]) in trained]
+    keep = torch.tensor([int(l) not in seen for l in ds.lighting.tolist()])
+    if not bool(keep.any()):
+        print("bench_lightnet: error: every gallery given was in the weights' training set (its card's "
+              "train_seeds_by_probe); render unseen ones with samples/galleries.py --seeds S", file=sys.stderr)
+        return 2
+    idx = torch.nonzero(keep).flatten()
+    ds = LightDataset(ds.radiance[idx], ds.sh[idx], ds.lighting[idx], torch.ones(len(idx), dtype=torch.bool),
+                      ds.sources, ds.meta, ds.heading[idx])
+    train_mean = model.meta.get("train_mean_sh")
+    train_mean = torch.zeros(9, 3) if train_mean is None else torch.as_tensor(train_mean, dtype=torch.float32)
+    ev = evaluate_lightnet(model, ds, train_mean)
+    images = ds.images()
+    pred = predict_sh(model, images, heading=ds.heading)
+    per_gallery = []
+    for l in ds.lighting.unique().tolist():
+        m = ds.lighting == l
+        gt = ds.sh[m][0]
+        grey = grey_ambient_sh(float(srgb_to_linear(images[m]).mean()))
+        g = info[l]
+        per_gallery.append({"gallery": g["path"], "seed": g["seed"], "profile": g["profile"], "probe": g["probe"],
+                            "views": int(m.sum()), "network": float(env_light_l2(pred[m].mean(0), gt)),
+                            "grey_ambient": float(env_light_l2(grey, gt)), "zero_light": float(gt.norm())})
+    summary = gallery_source_summary(ev.per_source)
+    worse = [r for r in per_gallery if r["network"] > r["zero_light"]]
+    figures = {"command": "bench/bench_lightnet.py " + " ".join(sys.argv[1:]), "weights": str(weights),
+               "galleries": len(per_gallery), "skipped_trained_on": [info[i]["path"] for i in seen],
+               "card": None if trained is None else str(weights.with_suffix(".json")),
+               "heldout": ev.to_json(), "sources": summary, "per_gallery": per_gallery,
+               "worse_than_zero_light": [r["gallery"] for r in worse],
+               "network_over_grey_per_gallery_mean": sum(r["network"] for r in per_gallery) / sum(r["grey_ambient"] for r in per_gallery),
+               "env_light_l2": "eq. 36: ||pred - gt||_2 over the 27 coefficients; per source: mean over images "
+                               "(network: per image); per gallery: the mean prediction over its views, as dars priors light"}
+    if args.json:
+        sys.stdout.write(json.dumps(figures, indent=2) + "\n")
+        return 0
+    print(f"weights {weights}: {len(per_gallery)} galleries ({ev.images} views) scored"
+          + (f", {len(seen)} skipped (in the card's training seeds)" if seen else "")
+          + ("" if trained is not None else " (no card beside the weights: cannot check what they were trained on)"))
+    print(f"  {'source':<16}{'img':>5}{'rooms':>6}{'net':>8}{'net/rm':>8}{'zero':>8}{'grey':>8}{'mean col':>9}{'net/grey':>9}")
+    for s, d in ev.per_source.items():
+        print(f"  {s:<16}{d['images']:>5}{d['lightings']:>6}{d['network']:8.3f}{d['network_per_lighting']:8.3f}"
+              f"{d['zero_light']:8.3f}{d['grey_ambient']:8.3f}{d['mean_colour']:9.3f}{d['network'] / d['grey_ambient']:9.2f}")
+    print(f"  equal weight over the {len(summary['sources'])} sources: net {summary['network']:.3f} (per room "
+          f"{summary['network_per_lighting']:.3f}), grey {summary['grey_ambient']:.3f}, zero {summary['zero_light']:.3f}; "
+          f"net/grey {summary['network_over_grey']:.2f}; better than zero light on every source: "
+          f"{summary['beats_zero_on_every_source']}")
+    print(f"  per room (the mean over its views, as dars priors light): net/grey {figures['network_over_grey_per_gallery_mean']:.2f}"
+          f" on the means; worse than zero light on {len(worse)} of {len(per_gallery)} rooms"
+          + (": " + ", ".join(f"{Path(r['gallery']).name} ({r['network']:.2f} > {r['zero_light']:.2f})" for r in worse) if worse else ""))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=str(DEFAULT_DATA), help=f"data set from samples/render_lightings.py (default {DEFAULT_DATA})")
@@ -130,6 +226,11 @@ def main(argv=None) -> int:
     ap.add_argument("--save", default=None, metavar="FILE.pt", help="write the weights here and the figures to FILE.json")
     ap.add_argument("--half", action="store_true", help="store the weights as float16")
     ap.add_argument("--json", action="store_true", help="print only the figures as JSON on stdout")
+    ap.add_argument("--score-only", action="store_true",
+                    help="train nothing: score --weights (default: the shipped network) on every gallery of --galleries, "
+                         "per lighting source and per gallery, against zero light, grey ambient and the image mean colour; "
+                         "galleries whose seed the weights' card lists as trained on are reported apart")
+    ap.add_argument("--weights", default=None, metavar="FILE.pt", help="--score-only: the weights (default: shipped)")
     args = ap.parse_args(argv)
 
     import torch
@@ -140,17 +241,15 @@ def main(argv=None) -> int:
                                   gallery_dirs, light_dataset_from_galleries, lightnet_config, load_light_dataset,
                                   save_lightnet, train_lightnet)
 
+    if args.score_only:
+        if not args.galleries:
+            ap.error("--score-only needs --galleries DIR [DIR ...]")
+        return _score_only(args)
     try:
         if args.galleries:
             dirs = gallery_dirs(*args.galleries)
             held = {Path(d).resolve() for d in args.heldout_galleries}
-            dirs = [d for d in dirs if d.resolve() not in held]
-            if args.seeds:
-                want = set()
-                for part in args.seeds.split(","):
-                    a, _, b = part.partition("-")
-                    want |= set(range(int(a), int(b or a) + 1))
-                dirs = [d for d in dirs if d.name[5:].isdigit() and int(d.name[5:]) in want]
+            dirs = _with_seeds([d for d in dirs if d.resolve() not in held], args.seeds)
             dirs = dirs[:args.max_galleries]
             ds = light_dataset_from_galleries(dirs, 64, tuple(args.holdout_probes), tuple(args.heldout_galleries),
                                               progress=not args.json)

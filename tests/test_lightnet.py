@@ -521,3 +521,32 @@ def test_light_dataset_from_galleries(tmp_path):
     assert len(both) == 18 and both.lighting.max() == 7 and both.sources == ds.sources * 2
     with pytest.raises(LightNetError, match="not found"):
         gallery_dirs(tmp_path / "nope")
+
+
+def test_bench_score_only_scores_unseen_galleries_and_sets_aside_the_trained_ones(tmp_path, capsys):
+    """bench_lightnet --score-only: the weights' card decides which galleries were trained on; those are left out,
+    every other one is scored per source and per room against zero light and grey ambient."""
+    import importlib.util as ilu
+
+    from toolkit.lightnet import LightNet, lightnet_config, save_lightnet
+
+    spec = ilu.spec_from_file_location("bench_lightnet", Path(__file__).resolve().parents[1] / "bench" / "bench_lightnet.py")
+    bench = ilu.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    prof = tmp_path / "prior"
+    for seed, probe in ((0, "pisa"), (2, "grace_new"), (10, "wells")):
+        _fake_gallery(prof, seed, probe)
+    torch.manual_seed(0)
+    w = save_lightnet(tmp_path / "net.pt", LightNet(lightnet_config("small")))
+    (tmp_path / "net.json").write_text(json.dumps({"galleries": {"train_seeds_by_probe": {"pisa": [0]}}}))
+    assert bench.main(["--score-only", "--galleries", str(prof), "--weights", str(w), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [Path(p).name for p in out["skipped_trained_on"]] == ["seed_0"]
+    assert out["galleries"] == 2 and sorted(r["seed"] for r in out["per_gallery"]) == [2, 10]
+    assert sorted(out["heldout"]["per_source"]) == ["grace_new", "wells"]
+    for r in out["per_gallery"]:
+        assert math.isclose(r["zero_light"], (r["seed"] + 1) * math.sqrt(3), rel_tol=1e-5)
+        assert (r["gallery"] in out["worse_than_zero_light"]) == (r["network"] > r["zero_light"])
+    (tmp_path / "net.json").write_text(json.dumps({"galleries": {"train_seeds_by_probe": {"pisa": [0, 2, 10]}}}))
+    assert bench.main(["--score-only", "--galleries", str(prof), "--weights", str(w), "--json"]) == 2
+    assert "training set" in capsys.readouterr().err
