@@ -149,8 +149,15 @@ def triangulate_sparse_points(scene, cfg: SparsePointsConfig = SparsePointsConfi
     for i in views:
         grey, s = _grey_u8(scene.load_image(int(i)), cfg.max_side, min(cfg.min_side, cfg.max_side))
         kps, desc = sift.detectAndCompute(grey, None)
-        uv = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
-        feats.append(((uv + 0.5) / s, desc, s))  # keypoint centres -> full-resolution pixel coordinates
+        uv = (np.array([k.pt for k in kps], np.float64).reshape(-1, 2) + 0.5) / s  # full-resolution pixel coordinates
+        keep = scene.valid_mask(int(i))
+        if keep is not None and len(uv) and desc is not None:  # no feature on what the photo's mask leaves out
+            px = np.floor(uv).astype(np.int64)
+            px[:, 0] = px[:, 0].clip(0, keep.shape[1] - 1)
+            px[:, 1] = px[:, 1].clip(0, keep.shape[0] - 1)
+            ok = keep.numpy()[px[:, 1], px[:, 0]]
+            uv, desc = uv[ok], desc[ok]
+        feats.append((uv, desc, s))
     c2w = cams.c2w.double().numpy()
     Ks = cams.intrinsics().double().numpy()
     matcher = cv2.BFMatcher(cv2.NORM_L2)

@@ -574,6 +574,10 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     mat_rule = ""
     samples_mean: list[float] = []
     figures = EvalFigures(log_path=Path(run.path) / "log.jsonl")
+    masks_ignored = getattr(run.cfg, "masks", "off") == "ignore" and any("mask" in f.extras for f in scene.frames)
+    if masks_ignored:
+        log("[dars eval] the test photos' masks (mask_path 0) are left out of the image scores: PSNR over the kept "
+            "pixels, SSIM/FLIP/LPIPS with the photo in place of the render where the mask is 0")
     log(f"[dars eval] {run.path}: rendering {len(views)} of {n_all} '{split}' views ({h}x{w} px)")
     bar = tqdm(views, desc="eval", unit="view", file=sys.stderr, disable=not cfg.progress)
     for i in bar:
@@ -585,10 +589,16 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
         gt_srgb = gt_stored if scene.srgb else linear_to_srgb(gt_stored.clamp(0, 1))
         pred_srgb = pred_disp if scene.srgb else linear_to_srgb(disp)
         row: dict[str, Any] = {"index": i, "key": scene.frames[i].key}
-        row["psnr"] = float(psnr(pred_disp, gt_stored))
-        row["ssim"] = float(ssim(pred_disp, gt_stored)) if "ssim" not in unavailable else None
-        row["flip"] = float(flip(pred_srgb.clamp(0, 1), gt_srgb.clamp(0, 1)))
-        row["lpips"] = float(lpips(pred_srgb[None], gt_srgb[None], cfg.lpips_weights)[0]) if lpips_ok else None
+        keep = scene.valid_mask(i) if masks_ignored else None  # the photo's mask_path: 0 = not scored
+        score_disp, score_srgb = pred_disp, pred_srgb
+        if keep is not None:  # PSNR over the kept pixels; SSIM/FLIP/LPIPS see the photo where the mask is 0
+            row["masked_out"] = float(1.0 - keep.float().mean())
+            score_disp = torch.where(keep[None], pred_disp, gt_stored)
+            score_srgb = torch.where(keep[None], pred_srgb, gt_srgb)
+        row["psnr"] = float(psnr(score_disp, gt_stored, keep))
+        row["ssim"] = float(ssim(score_disp, gt_stored)) if "ssim" not in unavailable else None
+        row["flip"] = float(flip(score_srgb.clamp(0, 1), gt_srgb.clamp(0, 1)))
+        row["lpips"] = float(lpips(score_srgb[None], gt_srgb[None], cfg.lpips_weights)[0]) if lpips_ok else None
         gt_lab = scene.load_extra(i, "semantic") if "semantic" in extras else None  # GT maps read once per view
         gt_depth = scene.load_extra(i, "depth") if "depth" in extras else None
         mask = None
@@ -751,6 +761,9 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
             "geometry": "on pixels with a ground-truth depth: median |rendered depth - GT depth| (metres, along the "
                         "camera axis) and mean rendered opacity, over all of them and per ground-truth class; "
                         "opacity well below 1 on a class means the learned background shows through it",
+            "masks": ("the test photos' mask_path 0 pixels are not scored: PSNR over the kept pixels, SSIM/FLIP/LPIPS "
+                      "with the photo in place of the render there (per_view masked_out: the share left out)")
+            if masks_ignored else None,
             "pooling": "psnr/ssim/flip/lpips: mean of per-view values; albedo/roughness/normal: over all masked "
                        "pixels of all views; miou: one confusion over all views",
         },

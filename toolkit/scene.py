@@ -136,6 +136,11 @@ class Scene:
         downscale: integer factor images are reduced by on load.
         srgb: whether stored images are sRGB-encoded (PNG/JPEG photos) rather than linear.
         depth_unit_scale_factor: PNG depth value x factor = metres.
+        masks: what a frame's ``mask_path`` means to :meth:`load_image`: ``ignore`` (nerfstudio's meaning, the
+            default) — nothing here; the mask marks the pixels training may use (:meth:`valid_mask`), 0 = ignore
+            (people, a tripod, glare); ``alpha`` — the mask is the photo's alpha: pixels outside it are composited
+            onto :attr:`background`, as an RGBA photo's would be (an object captured with masks); ``off`` — masks
+            are not read.
         meta: other top-level values of the source file (e.g. ``render``, ``scene`` blocks). ``meta["upright"]``
             (COLMAP and transforms inputs): ``rotation`` (float [3, 3] lists, ``x_loaded = rotation @ x_file``; the
             identity when nothing was rotated), ``tilt_deg``, ``source`` (``cameras`` / ``cameras+plane``, None when
@@ -158,6 +163,7 @@ class Scene:
     srgb: bool = True
     depth_unit_scale_factor: float = 0.001
     meta: dict = field(default_factory=dict)
+    masks: Literal["ignore", "alpha", "off"] = "ignore"
     _array_images: np.ndarray | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
@@ -274,10 +280,28 @@ class Scene:
         img = self._postprocess(i, img, "image", "area")
         rgb = img[..., :3]
         alpha = img[..., 3:4] if img.shape[2] >= 4 else np.ones_like(img[..., :1])
-        if img.shape[2] >= 4:
+        if self.masks == "alpha" and "mask" in self.frames[i].extras:
+            alpha = alpha * self._mask_alpha(i)
+        if img.shape[2] >= 4 or self.masks == "alpha":
             rgb = rgb * alpha + np.asarray(self.background, np.float32) * (1.0 - alpha)
         out = np.concatenate([rgb, alpha], -1) if with_alpha else rgb
         return torch.from_numpy(np.ascontiguousarray(out.transpose(2, 0, 1))).float()
+
+    def _mask_alpha(self, i: int) -> np.ndarray:
+        """float [H, W, 1] in [0, 1]: frame ``i``'s mask as an alpha (area-filtered when downscaled)."""
+        m = read_map(self.frames[i].extras["mask"], f"mask of {self._where(i)}")
+        m = m[..., :1] if m.ndim == 3 else m[..., None]
+        top = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(m.dtype, 1.0)
+        m = np.ascontiguousarray(m.astype(np.float32) / top)
+        m = self._postprocess(i, m, "mask", "area")
+        return np.clip(m if m.ndim == 3 else m[..., None], 0.0, 1.0)
+
+    def valid_mask(self, i: int) -> torch.Tensor | None:
+        """bool [H, W]: the pixels of frame ``i`` that training and scoring may use under ``masks="ignore"`` (its
+        ``mask_path`` > 0), or None when the frame has no mask or the masks are alpha."""
+        if self.masks != "ignore" or "mask" not in self.frames[i].extras:
+            return None
+        return self.load_extra(i, "mask")
 
     def load_images(self, indices: Iterable[int] | None = None, with_alpha: bool = False) -> torch.Tensor:
         """Decode several images to float [B, 3, H, W] (or [B, 4, H, W]); all must share one size."""
@@ -398,6 +422,7 @@ def load_scene(
     aabb: Sequence[Sequence[float]] | None = None,
     distortion: Literal["undistort", "reject"] = "undistort",
     upright: Literal["auto", "off"] = "auto",
+    masks: Literal["ignore", "alpha", "off"] = "ignore",
 ) -> Scene:
     """Load one split of a scene (lazily: only headers are read here).
 
@@ -430,6 +455,8 @@ def load_scene(
         raise SceneError(f"downscale must be a positive integer, got {downscale!r}")
     if upright not in ("auto", "off"):
         raise SceneError(f"upright must be 'auto' or 'off', got {upright!r}")
+    if masks not in ("ignore", "alpha", "off"):
+        raise SceneError(f"masks must be 'ignore', 'alpha' or 'off', got {masks!r}")
     bg = tuple(float(c) for c in background)
     if len(bg) != 3 or not all(0.0 <= c <= 1.0 for c in bg):
         raise SceneError(f"background must be 3 values in [0, 1], got {list(background)}")
@@ -442,7 +469,7 @@ def load_scene(
     elif any((path / f"transforms_{s}.json").is_file() for s in ("train", "val", "test")):
         file = path / f"transforms_{split}.json"
         if split == "all":
-            parts = [load_scene(path, s, downscale, bg, test_every, n_train, aabb, distortion, upright)
+            parts = [load_scene(path, s, downscale, bg, test_every, n_train, aabb, distortion, upright, masks)
                      for s in list_splits(path)]
             return _concat(parts)
         if not file.is_file():
@@ -466,6 +493,11 @@ def load_scene(
         if box.shape != (2, 3) or not bool((box[1] > box[0]).all()):
             raise SceneError(f"aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with max > min, got {aabb}")
         scene = replace(scene, aabb=box, meta={**scene.meta, "aabb_source": "file"})
+    if masks != "ignore":
+        if masks == "alpha" and not any("mask" in f.extras for f in scene.frames):
+            raise SceneError(f"{scene.source}: masks='alpha' (dars train --masks alpha) but no frame of split "
+                             f"'{split}' has a mask_path; add the masks to the transforms JSON or drop --masks alpha")
+        scene = replace(scene, masks=masks)
     return scene
 
 
@@ -990,7 +1022,11 @@ def scene_info(path: str | Path) -> dict:
 
 def photos_have_transparency(scene: "Scene", n: int = 3) -> bool:
     """Whether the photos are RGBA with real transparency (alpha < 1 somewhere in the first, middle or last
-    photo): an object rendered on a known background. An alpha channel that is 255 everywhere does not count."""
+    photo): an object rendered on a known background. An alpha channel that is 255 everywhere does not count. With
+    ``scene.masks == "alpha"`` the frames' masks are that alpha."""
+    idx = sorted({0, len(scene) // 2, len(scene) - 1})[:n]
+    if scene.masks == "alpha":
+        return any(bool((scene.load_image(i, with_alpha=True)[3] < 0.999).any()) for i in idx)
     f0 = scene.frames[0]
     if f0.image_path is None or f0.image_path.suffix.lower() != ".png":
         return False
@@ -999,5 +1035,4 @@ def photos_have_transparency(scene: "Scene", n: int = 3) -> bool:
     with Image.open(f0.image_path) as im:
         if im.mode not in ("RGBA", "LA"):
             return False
-    idx = sorted({0, len(scene) // 2, len(scene) - 1})[:n]
     return any(bool((scene.load_image(i, with_alpha=True)[3] < 0.999).any()) for i in idx)

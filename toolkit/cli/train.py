@@ -110,6 +110,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="semantic labels and metal masks: predicted by the segmentation prior (default; none when "
                         "`dars priors segment` was not run), the scene's ground-truth maps (experiments only: "
                         "recorded in the run and its reports), or none")
+    q.add_argument("--masks", default="auto", choices=["auto", "ignore", "alpha", "off"],
+                   help="what the frames' mask_path maps mean: ignore (nerfstudio's meaning) — their 0 pixels "
+                        "(people, a tripod, glare) are left out of training and of dars eval's scores; alpha — the "
+                        "mask is the photo's alpha (an object captured with masks becomes an object on a white "
+                        "background, as RGBA photos are); off — not read; auto (default): ignore when the photos have masks")
     q.add_argument("--snapshots", default="", help="comma-separated minutes at which to save the field, e.g. 2,5,10")
     q.add_argument("--batch-rays", type=COUNT, default=0, help="override rays per step (≥ 16)")
     q.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
@@ -180,6 +185,7 @@ _RESUME_OPTIONS = (
        lambda v: None if v is None else float(v))
       for flag, attr, key in _LOSS_OPTIONS),
     ("--labels", "labels", lambda m: m["config"].get("labels", "predicted"), lambda v: None if v == "predicted" else v),
+    ("--masks", "masks", lambda m: m["config"].get("masks", "off"), lambda v: None if v == "auto" else v),
     ("--light-residual", "light_residual", lambda m: _residual_mode(m["config"].get("field", {})), lambda v: v),
 )
 """Options that define a run: with ``--resume`` they must match the saved run (only its length may grow)."""
@@ -272,6 +278,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides["albedo_supervision"] = True
     if args.labels != "predicted":
         overrides["labels"] = args.labels
+    if args.masks != "auto":
+        overrides["masks"] = args.masks
     if args.batch_rays:
         overrides["batch_rays"] = args.batch_rays
     if args.shade is not None:

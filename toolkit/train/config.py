@@ -97,6 +97,13 @@ class TrainConfig:
     """Where semantic labels and metal masks come from: ``predicted`` — the segmentation prior
     (``<priors>/segment/``; none when it was not run); ``ground-truth`` — the scene's own ``semantic_path`` and
     ``metal_path`` maps (experiments only: every report says so); ``none`` — no labels."""
+    masks: Literal["auto", "ignore", "alpha", "off"] = "auto"
+    """What the frames' ``mask_path`` maps mean (nerfstudio's key): ``ignore`` — a mask's 0 pixels (people, a tripod,
+    glare) are never drawn and weigh nothing in any photometric term, nor in the geometry targets taken from the
+    photos, and ``dars eval`` leaves them out of its image scores; ``alpha`` — the mask is the photo's alpha: the
+    capture becomes an object on a known background, as RGBA photos with transparency are; ``off`` — masks are not
+    read. ``auto``: ``ignore`` when the training frames have masks, else ``off`` (resolved by :func:`resolve_config`,
+    recorded in the run)."""
     albedo_supervision: bool = False
     """Use ground-truth albedo maps in L_mat (eq. 20 a_gt) when the scene has them. Off by default: a real
     capture has none, and evaluating albedo MAE against the same maps would be circular."""
@@ -147,6 +154,7 @@ class TrainConfig:
         check_choice(self.scene_type, ("auto", "unbounded", "room", "object"), "scene_type")
         check_choice(self.labels, ("predicted", "ground-truth", "none"), "labels")
         check_choice(self.light_init, ("full", "ambient"), "light_init")
+        check_choice(self.masks, ("auto", "ignore", "alpha", "off"), "masks")
         if self.batch_rays < 16:
             raise ConfigError(f"batch_rays={self.batch_rays} must be >= 16")
         if self.steps < 0 or self.minutes < 0:
@@ -174,6 +182,7 @@ class TrainConfig:
         # runs saved before "no semantic input" and "no L_mat class terms" were separate switches: semantics=False
         # also dropped the labels from L_mat
         d.setdefault("mat_labels", bool(d.get("semantics", True)))
+        d.setdefault("masks", "off")  # runs made before mask_path was read trained on every pixel
         fd = dict(d.pop("field"))
         fd["grid"] = HashGridConfig(**fd["grid"])
         if "shell_faces" in fd:
@@ -298,6 +307,7 @@ def resolve_scene_box(cfg: TrainConfig, scene: Scene, log=None) -> tuple[Scene, 
 def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfig, Scene]:
     """Fill data-dependent settings; returns the config and the scene with its resolved box.
 
+    * ``masks`` (``auto`` → ``ignore`` when the photos have masks, else ``off``);
     * ``scene_type`` (``auto`` → ``unbounded`` or ``object``) and with it the field's contraction;
     * ``deferred`` left None: True (shading once per ray) for an unbounded scene, False for an object;
     * the loss weights left None (:data:`ROOM_LOSSES` for a room, :data:`OBJECT_LOSSES` or 0 for an object);
@@ -306,6 +316,12 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
       camera distance — ``next_pow2(4 · box extent / footprint)`` (twice that with contraction: the box spans half
       of each grid axis), clamped to [256, 2048].
     """
+    if cfg.masks == "auto":
+        has = sum("mask" in f.extras for f in scene.frames)
+        cfg = replace(cfg, masks="ignore" if has else "off")
+        if has and log is not None:
+            log(f"[dars] masks: {has} of {len(scene)} photos have a mask_path; its 0 pixels are left out of training "
+                "and scoring (--masks alpha: the masks are the photos' alpha; --masks off: not read)")
     kind = cfg.scene_type
     if kind == "auto":
         kind = "object" if photos_have_transparency(scene) else "unbounded"

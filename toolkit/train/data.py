@@ -13,6 +13,7 @@ W (DARS)           uint8, ``round(255 W)`` (rank-normalised W)    1
 labels             uint8 class ids (255 unlabelled)               1
 metal mask         bool                                           1
 albedo (optional)  float16 x 3 (``--albedo-supervision``)         6
+valid (optional)   bool, the photos' masks (``masks="ignore"``)   1
 =================  =============================================  =====
 
 so 4-6 bytes a pixel (colour and W always, labels and the metal mask when used; albedo supervision adds 6): 58
@@ -34,6 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from .._checks import ConfigError
 from ..io import srgb_to_linear
 from ..pixels import PackedViews
 from ..priors import priors_path, read_priors
@@ -89,6 +91,9 @@ class TrainData:
             :func:`toolkit.layout.layout_depth_targets`) or None.
         room_layout: the room's box (:meth:`toolkit.layout.RoomLayout.to_json`) when ``losses.layout_depth`` > 0,
             whether or not any pixel got a depth on it; else None.
+        valid: bool [P] the pixels training may use (the photos' ``mask_path`` > 0, ``cfg.masks == "ignore"``), or
+            None when every pixel may be used. The ray sampler never draws the others, and the geometry targets
+            taken from the photos (sparse depth, room layout, planar regions) leave them out.
         planar: the large textureless regions of the photos (``losses.planar`` > 0;
             :func:`toolkit.regions.textureless_regions`) or None: ``{"views", "rows", "cols"}`` int64 [N] pixels
             (at most ``PLANAR_PIXELS_PER_REGION`` of each region, drawn at random), ``"offsets"`` int64 [K + 1]
@@ -110,11 +115,13 @@ class TrainData:
     planar: dict | None = None
     layout_depth: dict | None = None
     room_layout: dict | None = None
+    valid: PackedViews | None = None
 
     @property
     def nbytes(self) -> int:
         """Bytes held by the per-pixel buffers."""
-        return sum(b.nbytes for b in (self.images, self.labels, self.metal, self.weights, self.albedo_gt) if b is not None)
+        return sum(b.nbytes for b in (self.images, self.labels, self.metal, self.weights, self.albedo_gt, self.valid)
+                   if b is not None)
 
 
 def grey_ambient_sh(mean_linear: float) -> torch.Tensor:
@@ -194,6 +201,10 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
     planar_parts: list[tuple[int, np.ndarray]] = []
     layout_regions: list[np.ndarray] = []  # textureless pixels (bool [H, W]) of each photo, for the layout targets
     gen = np.random.default_rng(cfg.seed)
+    valid = None
+    if cfg.masks == "ignore" and with_images and any("mask" in f.extras for f in scene.frames):
+        valid = PackedViews.allocate(hs, ws, dtype=torch.bool)
+    kept, total = 0, 0
     need_pixels = with_images or computed or need_light
     wcfg = WeightMapConfig()
     bg = torch.tensor(scene.background, dtype=torch.float32).view(3, 1, 1)
@@ -202,7 +213,13 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
         img = scene.load_image(i) if need_pixels else None  # float [3, H, W], the only full-precision copy
         if with_images:
             images.write(i, img.permute(1, 2, 0))
+        ok = scene.valid_mask(i) if valid is not None else None  # bool [H, W], None: every pixel
+        if valid is not None:
+            valid.write(i, ok if ok is not None else torch.ones(int(hs[i]), int(ws[i]), dtype=torch.bool))
+            kept, total = kept + (int(ok.sum()) if ok is not None else int(hs[i] * ws[i])), total + int(hs[i] * ws[i])
         reg = textureless_regions(img) if want_planar or want_layout else None
+        if reg is not None and ok is not None:
+            reg = np.where(ok.numpy(), reg, 0)
         if want_layout:
             layout_regions.append(layout_pixels(reg, labels, i))
         if want_planar:
@@ -220,12 +237,22 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
             dist[i] = float(wm_i.distortion_loss[0])
         if albedo_gt is not None:
             albedo_gt.write(i, scene.load_extra(i, "albedo").permute(1, 2, 0))
-        if need_light:  # the ambient level of the photos (of the object only, for RGBA photos on a known background)
+        if need_light:  # the ambient level of the photos (of the object only, for RGBA photos on a known background;
+            # of the pixels the masks keep)
             lin = srgb_to_linear(img) if scene.srgb else img
-            all_sum, all_n = all_sum + float(lin.sum(dtype=torch.float64)), all_n + lin.numel()
+            kept_px = None if ok is None else ok[None].expand_as(lin)
+            all_sum += float((lin if kept_px is None else lin[kept_px]).sum(dtype=torch.float64))
+            all_n += lin.numel() if kept_px is None else int(kept_px.sum())
             if scene.background is not None:
                 obj = ((img - bg).abs().amax(0, keepdim=True) > 0.02).expand_as(lin)
+                if kept_px is not None:
+                    obj = obj & kept_px
                 lin_sum, lin_n = lin_sum + float(lin[obj].sum(dtype=torch.float64)), lin_n + int(obj.sum())
+    if valid is not None:
+        if kept == 0:
+            raise ConfigError(f"{scene.source}: every pixel of the training photos is masked out (mask_path 0 "
+                              "everywhere); a mask marks the pixels to keep with values > 0 (or use --masks alpha / off)")
+        priors["masks"] = f"mask_path: {100.0 * (total - kept) / max(total, 1):.1f} % of the pixels left out"
     if computed:
         priors["weights"] = "computed (G" + ("+E" if w_labels is not None else "") + ("+M" if metal is not None else "") + ")"
     else:
@@ -254,6 +281,9 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
 
         points = triangulate_sparse_points(scene, log=log)
         sparse = sparse_depth_targets(scene, points)
+        if valid is not None:  # no depth target on a masked pixel (a person, a tripod)
+            keep = valid.gather(valid.flat_index(sparse["views"], sparse["rows"], sparse["cols"]))
+            sparse = {k: v[keep] for k, v in sparse.items()}
         log(f"[dars] sparse depth: {len(sparse['depth'])} pixels with a triangulated depth "
             f"(weight {cfg.losses.sparse_depth:g})" + ("; none: the loss is off" if not len(sparse["depth"]) else ""))
         if not len(sparse["depth"]):
@@ -289,7 +319,7 @@ def prepare_data(scene: Scene, cfg: TrainConfig, log=print, priors_root: str | P
     return TrainData(scene=scene, images=images, labels=labels, metal=metal, weights=wm, distortion=dist,
                      albedo_gt=albedo_gt, l_env_init=l_env, l_env_source=l_src, colour_init=pri.colour,
                      priors_used=priors, sparse_depth=sparse, planar=planar,
-                     layout_depth=layout, room_layout=room.to_json() if room is not None else None)
+                     layout_depth=layout, room_layout=room.to_json() if room is not None else None, valid=valid)
 
 
 def _layout_only(heights: torch.Tensor, widths: torch.Tensor) -> PackedViews:

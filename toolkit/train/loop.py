@@ -194,7 +194,8 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
         raise ConfigError("give a training length: --steps N or --minutes M")
     if cfg.device != "auto" and cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"device={cfg.device} requested but CUDA is not available")
-    scene = load_scene(scene_path, split, downscale=downscale, upright=upright)
+    scene = load_scene(scene_path, split, downscale=downscale, upright=upright,
+                       masks=cfg.masks if cfg.masks in ("alpha", "off") else "ignore")
     if ddp is not None:  # rank 0 resolves the box and grid; the others take its config
         if main:
             cfg, _ = resolve_config(cfg, scene, log)
@@ -235,7 +236,7 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
         if not main:
             return
         write_json(cfg_path, {"config": cfg.to_dict(), "scene": str(Path(scene_path).resolve()), "split": split,
-                              "downscale": downscale, "upright": upright,
+                              "downscale": downscale, "upright": upright, "masks": cfg.masks,
                               "priors_root": str(Path(priors_root).resolve()) if priors_root else None,
                               "priors": data.priors_used, "l_env_init": data.l_env_init.tolist(),
                               "l_env_source": data.l_env_source, "torch": torch.__version__,

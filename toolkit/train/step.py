@@ -79,20 +79,28 @@ def train_device(cfg: TrainConfig) -> torch.device:
     return resolve_device(cfg.device)
 
 
-def _border_colour(images: PackedViews, srgb: bool) -> tuple[float, float, float]:
-    """Median colour (linear) of the outermost pixel ring of all training images: the background a learned
-    background model starts from (starting it wrong lets the optimiser hide it behind a shell of density)."""
+def _border_colour(images: PackedViews, srgb: bool, valid: PackedViews | None = None) -> tuple[float, float, float]:
+    """Median colour (linear) of the outermost pixel ring of all training images (of its pixels ``valid`` keeps, the
+    photos' masks): the background a learned background model starts from (starting it wrong lets the optimiser
+    hide it behind a shell of density)."""
     rings = []
     for i in range(len(images)):
         x = images.raw(i)  # [H, W, 3] as stored
-        rings += [x[0], x[-1], x[:, 0], x[:, -1]]
+        ring = [x[0], x[-1], x[:, 0], x[:, -1]]
+        if valid is not None:
+            m = valid.raw(i)
+            ring = [r[k] for r, k in zip(ring, (m[0], m[-1], m[:, 0], m[:, -1]))]
+        rings += ring
     ring = torch.cat(rings).float()
+    if ring.numel() == 0:  # every border pixel masked out: the median of all the images
+        ring = images.data.float().reshape(-1, 3)
     med = ring.median(0).values / (255.0 if images.quantised else 1.0)
     lin = srgb_to_linear(med) if srgb else med
     return tuple(float(c) for c in lin.clamp(0.0, 1.0))
 
 
-def _background_for(scene: Scene, cfg: TrainConfig, images: PackedViews | None = None) -> Background:
+def _background_for(scene: Scene, cfg: TrainConfig, images: PackedViews | None = None,
+                    valid: PackedViews | None = None) -> Background:
     mode = cfg.background
     if mode == "auto":
         mode = "constant" if cfg.scene_type == "object" and photos_have_transparency(scene) else "env"
@@ -104,7 +112,7 @@ def _background_for(scene: Scene, cfg: TrainConfig, images: PackedViews | None =
     elif start == "dark":
         colour = (1e-4, 1e-4, 1e-4)
     else:
-        colour = _border_colour(images, scene.srgb)
+        colour = _border_colour(images, scene.srgb, valid)
     return Background(mode, colour)
 
 
@@ -115,7 +123,7 @@ def init_state(cfg: TrainConfig, data: TrainData) -> TrainState:
     gen = torch.Generator().manual_seed(cfg.seed)
     scene = data.scene
     fld = DarsField(cfg.field, scene.aabb).to(dev)
-    bg = _background_for(scene, cfg, data.images).to(dev)
+    bg = _background_for(scene, cfg, data.images, data.valid).to(dev)
     l_env = nn.Parameter(data.l_env_init.clone().to(dev))
     colour = None
     if cfg.colour_correction == "on" or (cfg.colour_correction == "auto" and data.colour_init is not None):
@@ -152,7 +160,8 @@ def init_state(cfg: TrainConfig, data: TrainData) -> TrainState:
     occ = OccupancyGrid(scene.aabb, cfg.occupancy_resolution, step=occ_step,
                         contraction=cfg.field.contraction, far_radius=cfg.field.far_radius).to(dev)
     occ.explore = cfg.occupancy_explore
-    ray_sampler = build_ray_sampler(data.weights if cfg.sampler.dars else None, data.weights, cfg.sampler.rho)
+    ray_sampler = build_ray_sampler(data.weights if cfg.sampler.dars else None, data.weights, cfg.sampler.rho,
+                                    valid=data.valid)
     nb = neighbour_views(scene.cameras, cfg.sampler.n_neighbours)
     dars = DarsContext(scene.cameras.to(dev), data.weights.to(dev), nb.to(dev))
     return TrainState(cfg=cfg, field=fld, background=bg, l_env=l_env, colour=colour, optimizer=opt,
@@ -287,6 +296,7 @@ class Batch:
     albedo_gt: torch.Tensor | None
     n_random: int
     patch_iw: torch.Tensor | None  # [P]
+    pixels: torch.Tensor | None = None  # [R] int64 packed pixel indices (CPU) of the rays
 
 
 def sample_batch(state: TrainState, data: TrainData) -> Batch:
@@ -314,6 +324,10 @@ def sample_batch(state: TrainState, data: TrainData) -> Batch:
         cols = torch.cat([cols, (pc[:, None] + dc.reshape(1, -1)).reshape(-1)])
         iw = torch.cat([iw, patch_iw.repeat_interleave(s * s)])
     flat = lay.flat_index(views, rows, cols)
+    if P and data.valid is not None:  # a patch's masked pixels weigh nothing; SSIM drops a patch that has any
+        ok = data.valid.gather(flat).to(iw.dtype)
+        iw = iw * ok
+        patch_iw = patch_iw * ok[n_rand:].reshape(P, -1).amin(1)
     dev = state.device
     rays = _training_rays(state, data, views, rows, cols)
     target = data.images.gather(flat).to(dev)
@@ -322,7 +336,7 @@ def sample_batch(state: TrainState, data: TrainData) -> Batch:
     albedo_gt = data.albedo_gt.gather(flat).to(dev) if data.albedo_gt is not None else None
     wray = data.weights.gather(flat).to(dev)
     return Batch(rays, target, iw.to(dev), views.to(dev), labels, metal, wray, albedo_gt, n_rand,
-                 None if patch_iw is None else patch_iw.to(dev))
+                 None if patch_iw is None else patch_iw.to(dev), flat)
 
 
 SPARSE_DEPTH_RAYS = 256
