@@ -118,10 +118,7 @@ def _score_only(args) -> int:
     torch.set_num_threads(args.threads)
     from toolkit._checks import DarsError
     from toolkit.lightnet import (DEFAULT_WEIGHTS, LightDataset, evaluate_lightnet, gallery_dirs,
-                                  light_dataset_from_galleries, load_lightnet, predict_sh)
-    from toolkit.io import srgb_to_linear
-    from toolkit.metrics import env_light_l2
-    from toolkit.train import grey_ambient_sh
+                                  light_dataset_from_galleries, load_lightnet)
 
     weights = Path(args.weights).expanduser() if args.weights else DEFAULT_WEIGHTS
     try:
@@ -145,17 +142,9 @@ def _score_only(args) -> int:
     train_mean = model.meta.get("train_mean_sh")
     train_mean = torch.zeros(9, 3) if train_mean is None else torch.as_tensor(train_mean, dtype=torch.float32)
     ev = evaluate_lightnet(model, ds, train_mean)
-    images = ds.images()
-    pred = predict_sh(model, images, heading=ds.heading)
-    per_gallery = []
-    for l in ds.lighting.unique().tolist():
-        m = ds.lighting == l
-        gt = ds.sh[m][0]
-        grey = grey_ambient_sh(float(srgb_to_linear(images[m]).mean()))
-        g = info[l]
-        per_gallery.append({"gallery": g["path"], "seed": g["seed"], "profile": g["profile"], "probe": g["probe"],
-                            "views": int(m.sum()), "network": float(env_light_l2(pred[m].mean(0), gt)),
-                            "grey_ambient": float(env_light_l2(grey, gt)), "zero_light": float(gt.norm())})
+    per_gallery = [{"gallery": info[r["lighting"]]["path"], "seed": info[r["lighting"]]["seed"],
+                    "profile": info[r["lighting"]]["profile"], "probe": info[r["lighting"]]["probe"], "views": r["images"],
+                    **{k: r[k] for k in ("network", "grey_ambient", "zero_light")}} for r in ev.per_lighting]
     summary = gallery_source_summary(ev.per_source)
     worse = [r for r in per_gallery if r["network"] > r["zero_light"]]
     figures = {"command": "bench/bench_lightnet.py " + " ".join(sys.argv[1:]), "weights": str(weights),

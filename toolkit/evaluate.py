@@ -574,7 +574,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     mat_rule = ""
     samples_mean: list[float] = []
     figures = EvalFigures(log_path=Path(run.path) / "log.jsonl")
-    masks_ignored = getattr(run.cfg, "masks", "off") == "ignore" and any("mask" in f.extras for f in scene.frames)
+    masks_ignored = scene.masks == "ignore" and any("mask" in f.extras for f in scene.frames)  # the run's --masks
     if masks_ignored:
         log("[dars eval] the test photos' masks (mask_path 0) are left out of the image scores: PSNR over the kept "
             "pixels, SSIM/FLIP/LPIPS with the photo in place of the render where the mask is 0")

@@ -812,6 +812,9 @@ class LightNetEvaluation:
         per_source: per lighting source (``pisa``, ``sky``...), the network's and baselines' means over images, and
             ``network_per_lighting`` over that source's lightings.
         images, lightings: how many were evaluated.
+        per_lighting: per lighting, ``{"lighting", "source", "images", "network", "grey_ambient", "zero_light"}``:
+            the network's mean over the lighting's views (as ``dars priors light`` combines them) and the grey
+            ambient of their mean level (as the trainer starts without a light prior), against that lighting's truth.
     """
 
     network: float
@@ -823,6 +826,7 @@ class LightNetEvaluation:
     per_source: dict[str, dict[str, float]]
     images: int
     lightings: int
+    per_lighting: list[dict] = field(default_factory=list)
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -852,6 +856,14 @@ def evaluate_lightnet(model: LightNet, dataset: LightDataset, train_mean_sh: tor
     per_l = torch.stack([env_light_l2(pred[dataset.lighting == l].mean(0), gt[dataset.lighting == l][0]) for l in lights])
     src = np.array(dataset.source_of())
     src_l = np.array([dataset.sources[l] if l < len(dataset.sources) else "?" for l in lights.tolist()])
+    per_lighting = []
+    for k, l in enumerate(lights.tolist()):
+        m = dataset.lighting == l
+        grey_l = torch.zeros(9, 3)
+        grey_l[0] = 2.0 * float(lin_mean[m].mean()) / 0.282095
+        per_lighting.append({"lighting": int(l), "source": str(src_l[k]), "images": int(m.sum()),
+                             "network": float(per_l[k]), "grey_ambient": float(env_light_l2(grey_l, gt[m][0])),
+                             "zero_light": float(gt[m][0].norm())})
     per_source = {s: {k: float(v[torch.from_numpy(src == s)].mean()) for k, v in errs.items()}
                   | {"network_per_lighting": float(per_l[torch.from_numpy(src_l == s)].mean()),
                      "images": int((src == s).sum()), "lightings": int((src_l == s).sum())}
@@ -860,7 +872,7 @@ def evaluate_lightnet(model: LightNet, dataset: LightDataset, train_mean_sh: tor
                               train_mean_sh=float(errs["train_mean_sh"].mean()), mean_colour=float(errs["mean_colour"].mean()),
                               grey_ambient=float(errs["grey_ambient"].mean()),
                               zero_light=float(errs["zero_light"].mean()), per_source=per_source,
-                              images=len(dataset), lightings=int(len(lights)))
+                              images=len(dataset), lightings=int(len(lights)), per_lighting=per_lighting)
 
 
 # ============================================================================ persistence

@@ -91,10 +91,11 @@ def run_scene_options(meta: dict) -> dict:
     """How a run loaded its scene, from its ``config.json``: the :func:`~toolkit.scene.load_scene` keywords
     ``downscale`` (``dars train --downscale``; 1 for runs written before it) and ``upright`` (``"off"`` with
     ``--no-upright``, and for runs written before scenes were made upright on load: they trained in the input's frame)
-    and ``masks`` (``"alpha"`` or ``"off"`` for a run trained with ``--masks alpha`` / ``off``, else ``"ignore"``).
+    and ``masks`` (the run's resolved ``--masks``: ``ignore``, ``alpha`` or ``off``; ``off`` for runs written before
+    masks were read, which trained on every pixel, as :meth:`~toolkit.train.TrainConfig.from_dict` loads them).
     """
     return {"downscale": int(meta.get("downscale", 1)), "upright": meta.get("upright", "off"),
-            "masks": meta["masks"] if meta.get("masks") in ("alpha", "off") else "ignore"}
+            "masks": meta.get("masks", "off")}
 
 
 def read_run_config(meta: dict, path: str | os.PathLike):
