@@ -144,7 +144,8 @@ def _score_only(args) -> int:
     ev = evaluate_lightnet(model, ds, train_mean)
     per_gallery = [{"gallery": info[r["lighting"]]["path"], "seed": info[r["lighting"]]["seed"],
                     "profile": info[r["lighting"]]["profile"], "probe": info[r["lighting"]]["probe"], "views": r["images"],
-                    **{k: r[k] for k in ("network", "grey_ambient", "zero_light")}} for r in ev.per_lighting]
+                    **{k: r[k] for k in ("network", "grey_ambient", "zero_light", "true_over_network_level",
+                                         "network_true_level")}} for r in ev.per_lighting]
     summary = gallery_source_summary(ev.per_source)
     worse = [r for r in per_gallery if r["network"] > r["zero_light"]]
     figures = {"command": "bench/bench_lightnet.py " + " ".join(sys.argv[1:]), "weights": str(weights),
@@ -153,6 +154,7 @@ def _score_only(args) -> int:
                "heldout": ev.to_json(), "sources": summary, "per_gallery": per_gallery,
                "worse_than_zero_light": [r["gallery"] for r in worse],
                "network_over_grey_per_gallery_mean": sum(r["network"] for r in per_gallery) / sum(r["grey_ambient"] for r in per_gallery),
+               "level": _level_summary(per_gallery),
                "env_light_l2": "eq. 36: ||pred - gt||_2 over the 27 coefficients; per source: mean over images "
                                "(network: per image); per gallery: the mean prediction over its views, as dars priors light"}
     if args.json:
@@ -172,7 +174,25 @@ def _score_only(args) -> int:
     print(f"  per room (the mean over its views, as dars priors light): net/grey {figures['network_over_grey_per_gallery_mean']:.2f}"
           f" on the means; worse than zero light on {len(worse)} of {len(per_gallery)} rooms"
           + (": " + ", ".join(f"{Path(r['gallery']).name} ({r['network']:.2f} > {r['zero_light']:.2f})" for r in worse) if worse else ""))
+    lv = figures["level"]
+    print(f"  the light's level (diagnosis; the truth is used here, never by the network): true / predicted level per room "
+          f"10th-50th-90th percentile {lv['ratio_p10']:.2f} / {lv['ratio_p50']:.2f} / {lv['ratio_p90']:.2f}; told its true "
+          f"level, the network would score net/grey {lv['network_true_level_over_grey']:.2f} on the means (the rest is "
+          f"the light's direction and colour) instead of {figures['network_over_grey_per_gallery_mean']:.2f}")
     return 0
+
+
+def _level_summary(per_gallery: list[dict]) -> dict:
+    """How much of the per-room error is the light's level: percentiles of true / predicted level, and the ratio to
+    grey ambient of the network's estimate scaled to the true level (an oracle for diagnosis, not an estimate)."""
+    import numpy as np
+
+    r = np.array([g["true_over_network_level"] for g in per_gallery])
+    grey = sum(g["grey_ambient"] for g in per_gallery)
+    return {"ratio_p10": float(np.percentile(r, 10)), "ratio_p50": float(np.median(r)), "ratio_p90": float(np.percentile(r, 90)),
+            "network_true_level_over_grey": sum(g["network_true_level"] for g in per_gallery) / grey,
+            "definition": "true_over_network_level: the truth's mean DC over the room estimate's; network_true_level: "
+                          "the L2 of the room estimate times that ratio (uses the truth: a diagnosis, not a method)"}
 
 
 def main(argv=None) -> int:

@@ -547,6 +547,22 @@ def test_bench_score_only_scores_unseen_galleries_and_sets_aside_the_trained_one
     for r in out["per_gallery"]:
         assert math.isclose(r["zero_light"], (r["seed"] + 1) * math.sqrt(3), rel_tol=1e-5)
         assert (r["gallery"] in out["worse_than_zero_light"]) == (r["network"] > r["zero_light"])
+    # the level diagnosis: the room estimate times true/predicted level has the true level, and its L2 is scored
+    from toolkit.lightnet import light_dataset_from_galleries, load_lightnet, predict_sh
+    from toolkit.metrics import env_light_l2
+
+    net = load_lightnet(w)
+    for r in out["per_gallery"]:
+        ds = light_dataset_from_galleries([Path(r["gallery"])], net.cfg.input_size)
+        room = predict_sh(net, ds.images(), heading=ds.heading).mean(0)
+        scaled = room * r["true_over_network_level"]
+        assert math.isclose(float(scaled[0].mean()), r["seed"] + 1.0, rel_tol=1e-4)
+        assert math.isclose(r["network_true_level"], float(env_light_l2(scaled, ds.sh[0])), rel_tol=1e-4)
+    ratios = sorted(r["true_over_network_level"] for r in out["per_gallery"])
+    assert math.isclose(out["level"]["ratio_p50"], sum(ratios) / 2, rel_tol=1e-6)
+    assert math.isclose(out["level"]["network_true_level_over_grey"],
+                        sum(r["network_true_level"] for r in out["per_gallery"])
+                        / sum(r["grey_ambient"] for r in out["per_gallery"]), rel_tol=1e-6)
     (tmp_path / "net.json").write_text(json.dumps({"galleries": {"train_seeds_by_probe": {"pisa": [0, 2, 10]}}}))
     assert bench.main(["--score-only", "--galleries", str(prof), "--weights", str(w), "--json"]) == 2
     assert "training set" in capsys.readouterr().err

@@ -812,9 +812,12 @@ class LightNetEvaluation:
         per_source: per lighting source (``pisa``, ``sky``...), the network's and baselines' means over images, and
             ``network_per_lighting`` over that source's lightings.
         images, lightings: how many were evaluated.
-        per_lighting: per lighting, ``{"lighting", "source", "images", "network", "grey_ambient", "zero_light"}``:
-            the network's mean over the lighting's views (as ``dars priors light`` combines them) and the grey
-            ambient of their mean level (as the trainer starts without a light prior), against that lighting's truth.
+        per_lighting: per lighting, ``{"lighting", "source", "images", "network", "grey_ambient", "zero_light",
+            "true_over_network_level", "network_true_level"}``: the network's mean over the lighting's views (as
+            ``dars priors light`` combines them) and the grey ambient of their mean level (as the trainer starts
+            without a light prior), against that lighting's truth; the ratio of the true to the predicted level
+            (mean DC over the colour channels), and, for diagnosis only, the L2 of the network's estimate scaled to
+            the true level (the truth tells it its level: what is left is the light's direction and colour).
     """
 
     network: float
@@ -861,9 +864,12 @@ def evaluate_lightnet(model: LightNet, dataset: LightDataset, train_mean_sh: tor
         m = dataset.lighting == l
         grey_l = torch.zeros(9, 3)
         grey_l[0] = 2.0 * float(lin_mean[m].mean()) / 0.282095
+        p_l, g_l = pred[m].mean(0), gt[m][0]
+        level = float(g_l[0].mean()) / max(float(p_l[0].mean()), 1e-12)
         per_lighting.append({"lighting": int(l), "source": str(src_l[k]), "images": int(m.sum()),
-                             "network": float(per_l[k]), "grey_ambient": float(env_light_l2(grey_l, gt[m][0])),
-                             "zero_light": float(gt[m][0].norm())})
+                             "network": float(per_l[k]), "grey_ambient": float(env_light_l2(grey_l, g_l)),
+                             "zero_light": float(g_l.norm()), "true_over_network_level": level,
+                             "network_true_level": float(env_light_l2(p_l * level, g_l))})
     per_source = {s: {k: float(v[torch.from_numpy(src == s)].mean()) for k, v in errs.items()}
                   | {"network_per_lighting": float(per_l[torch.from_numpy(src_l == s)].mean()),
                      "images": int((src == s).sum()), "lightings": int((src_l == s).sum())}
