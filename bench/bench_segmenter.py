@@ -142,7 +142,7 @@ def score(net, scene_path: Path, split: str = "test", scene_prior: bool = True) 
     import torch
 
     from toolkit.scene import load_scene
-    from toolkit.segment import SegmentConfig, apply_scene_prior, mean_iou, metal_iou, segment_images
+    from toolkit.segment import METAL_THRESHOLD, SegmentConfig, apply_scene_prior, mean_iou, metal_iou, segment_images
 
     sc = load_scene(scene_path, split, upright="off")
     prior = scene_prior_of(net, scene_path) if scene_prior else None
@@ -155,7 +155,7 @@ def score(net, scene_path: Path, split: str = "test", scene_prior: bool = True) 
         preds.append(seg.labels[0].flatten())
         gts.append(sc.load_extra(i, "semantic").flatten())
         if seg.metal is not None and "metal" in sc.frames[i].extras:
-            mp.append((seg.metal[0] > 0.5).flatten())
+            mp.append((seg.metal[0] > METAL_THRESHOLD).flatten())
             mg.append(sc.load_extra(i, "metal").bool().flatten())
     miou, per = mean_iou(torch.cat(preds), torch.cat(gts))
     miou_raw, per_raw = mean_iou(torch.cat(raw), torch.cat(gts))

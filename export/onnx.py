@@ -299,7 +299,7 @@ def export_segmenter_onnx(model: torch.nn.Module, path: str | os.PathLike, image
     """
     from toolkit.scene import SEMANTIC_CLASSES
 
-    from toolkit.segment import SegmenterExport
+    from toolkit.segment import METAL_THRESHOLD, SegmenterExport
 
     g = torch.Generator().manual_seed(0)
     example = torch.rand(2, 3, int(image_size[0]), int(image_size[1]), generator=g)
@@ -313,7 +313,7 @@ def export_segmenter_onnx(model: torch.nn.Module, path: str | os.PathLike, image
         "dars.input": "images: float32 N x 3 x H x W, RGB, sRGB-encoded, [0, 1]; resize so the short side is "
                       "dars.work_size (0: any size) and resize the outputs back",
         "dars.output": "logits: float32 N x 7 x H x W (argmax = class id)"
-                       + ("; metal: float32 N x 1 x H x W, probability of metal (mask: > 0.5)" if metal else ""),
+                       + (f"; metal: float32 N x 1 x H x W, probability of metal (mask: > {METAL_THRESHOLD})" if metal else ""),
     }
     outs = ["logits", "metal"] if metal else ["logits"]
     axes = {"images": {2: "height", 3: "width"}, **{o: {2: "height", 3: "width"} for o in outs}}

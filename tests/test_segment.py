@@ -419,3 +419,30 @@ def test_cli_segment_errors(tmp_path, capsys):
     assert rc == 2 and "no semantic_path labels" in err and "shipped" in err
     rc, out, err = _run(["priors", "segment", str(scene), "--backend", "onnx", "--out", str(tmp_path / "o")], capsys)
     assert rc == 2 and "needs --model" in err
+
+
+@pytest.mark.parametrize("p, metal", [(0.6, False), (0.8, True)])
+def test_priors_segment_metal_mask_is_the_probability_above_the_threshold(tmp_path, p, metal):
+    """The metal mask a run trains with is the segmenter's metal probability above METAL_THRESHOLD (0.7, chosen on
+    unseen galleries), not above 0.5: a network that says 0.6 everywhere marks nothing, one that says 0.8 all."""
+    import math
+
+    from toolkit.priors import priors_segment
+    from toolkit.scene import load_scene
+    from toolkit.segment import METAL_THRESHOLD, Segmenter, SegmenterConfig, save_segmenter
+
+    assert METAL_THRESHOLD == 0.7
+    scene = load_scene(write_scene(tmp_path / "scene", n_train=2, n_test=1, size=24), "train")
+    torch.manual_seed(0)
+    net = Segmenter(SegmenterConfig(metal=True))
+    with torch.no_grad():  # the metal channel's logit is its bias alone
+        net.head.weight[-1].zero_()
+        net.head.bias[-1] = math.log(p / (1 - p))
+    w = save_segmenter(tmp_path / "net.pt", net)
+    info = priors_segment(scene, tmp_path / "seg", model=str(w))
+    assert info["metal_threshold"] == METAL_THRESHOLD
+    from toolkit.io import read_map
+
+    for f in scene.frames:
+        m = np.asarray(read_map(tmp_path / "seg" / f"{f.key}_metal.png"))
+        assert (m > 0).all() if metal else (m == 0).all()

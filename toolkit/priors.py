@@ -240,7 +240,7 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
     Raises:
         DarsError / SegmentationError: unwritable folder, user files in the way, missing labels or model.
     """
-    from .segment import (DEFAULT_SEGMENTER, SCENE_PRIOR_FLOOR, SegmentConfig, SegmentationError, TrainSegmenterConfig,
+    from .segment import (DEFAULT_SEGMENTER, METAL_THRESHOLD, SCENE_PRIOR_FLOOR, SegmentConfig, SegmentationError, TrainSegmenterConfig,
                           apply_scene_prior, estimate_scene_prior, load_segmenter, mean_iou, metal_iou, save_segmenter,
                           segment_images, segmenter_train_prior, train_segmenter)
     from .visualise import colourise_labels, tile
@@ -262,6 +262,8 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
     if net is not None:
         info["model"] = str(model) if model else f"shipped ({DEFAULT_SEGMENTER.name})"
         info["metal_mask"] = "predicted" if with_metal else "none (the network has no metal channel)"
+        if with_metal:
+            info["metal_threshold"] = METAL_THRESHOLD
     train_idx: list[int] = []
     if backend == "builtin":
         if not has_gt:
@@ -345,7 +347,7 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
         write_png(out.file(f"{f.key}.png"), lab.numpy().astype(np.uint8))
         row = [img.permute(1, 2, 0).numpy(), colourise_labels(lab)]
         if seg.metal is not None:
-            m = seg.metal[0] > 0.5
+            m = seg.metal[0] > METAL_THRESHOLD
             write_png(out.file(f"{f.key}_metal.png"), m.numpy().astype(np.uint8) * 255)
             row.append(np.repeat(m.numpy()[..., None].astype(np.float32), 3, axis=2))
         if gt is not None:
@@ -357,7 +359,7 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
             preds.append(lab)
             gts.append(gt)
             if seg.metal is not None and "metal" in f.extras:
-                mpred.append(seg.metal[0] > 0.5)
+                mpred.append(seg.metal[0] > METAL_THRESHOLD)
                 mgt.append(scene.load_extra(i, "metal").bool())
     from .scene import SEMANTIC_CLASSES
 
@@ -380,7 +382,7 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
             ep.append(_labels(seg))
             eg.append(eval_scene.load_extra(i, "semantic"))
             if seg.metal is not None and "metal" in eval_scene.frames[i].extras:
-                emp.append(seg.metal[0] > 0.5)
+                emp.append(seg.metal[0] > METAL_THRESHOLD)
                 emg.append(eval_scene.load_extra(i, "metal").bool())
         _report("eval", ep, eg, emp, emg)
         info["eval_split"] = eval_scene.split
