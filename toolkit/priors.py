@@ -240,9 +240,9 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
     Raises:
         DarsError / SegmentationError: unwritable folder, user files in the way, missing labels or model.
     """
-    from .segment import (DEFAULT_SEGMENTER, METAL_THRESHOLD, SCENE_PRIOR_FLOOR, SegmentConfig, SegmentationError, TrainSegmenterConfig,
-                          apply_scene_prior, estimate_scene_prior, load_segmenter, mean_iou, metal_iou, save_segmenter,
-                          segment_images, segmenter_train_prior, train_segmenter)
+    from .segment import (DEFAULT_SEGMENTER, METAL_THRESHOLD, SCENE_PRIOR_FLOOR, SegmentConfig, SegmentationError,
+                          TrainSegmenterConfig, apply_scene_prior, estimate_scene_prior, load_segmenter, mean_iou,
+                          metal_iou, save_segmenter, segment_images, segmenter_train_prior, train_segmenter)
     from .visualise import colourise_labels, tile
 
     if backend not in ("shipped", "builtin", "provided", "onnx"):
