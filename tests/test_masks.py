@@ -188,3 +188,29 @@ def test_no_feature_point_on_a_masked_pixel(masked):
     assert not bool(inside.any())
     t_off = sparse_depth_targets(sc, triangulate_sparse_points(load_scene(masked, "train", masks="off")))
     assert bool(((t_off["rows"] < BLOCK) & (t_off["cols"] < BLOCK)).any())  # without the masks, some land there
+
+
+def test_masks_that_outline_an_object_become_its_alpha(tmp_path, masked):
+    """Object masks (NeRD, IDR, DTU: the thing photographed cut out of its surroundings) keep little of the photos'
+    borders: ``--masks auto`` reads them as alpha, and the scene trains as an object. Masks that leave out a visitor
+    keep most of the border and stay ``ignore``."""
+    from toolkit.train.config import OBJECT_MASK_BORDER, masks_border_share, resolve_config
+
+    root = make_scene(tmp_path / "s", n_train=6, n_test=2, size=SIZE)
+    meta = json.loads((root / "transforms_train.json").read_text())
+    yy, xx = np.mgrid[:SIZE, :SIZE]
+    disk = (((yy - SIZE / 2) ** 2 + (xx - SIZE / 2) ** 2) < (SIZE / 3) ** 2).astype(np.uint8) * 255
+    write_png(root / "disk.png", disk)
+    for f in meta["frames"]:
+        f["mask_path"] = "disk.png"
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+    sc = load_scene(root, "train")
+    assert masks_border_share(sc) == 0.0
+    cfg, sc2 = resolve_config(_small(steps=10, labels="none"), sc)
+    assert cfg.masks == "alpha" and sc2.masks == "alpha" and cfg.scene_type == "object"
+    alpha = sc2.load_image(0, with_alpha=True)[3]
+    assert float(alpha[0, 0]) == 0.0 and float(alpha[SIZE // 2, SIZE // 2]) == 1.0
+    visitor = load_scene(masked, "train")
+    assert masks_border_share(visitor) > OBJECT_MASK_BORDER
+    cfg, sc3 = resolve_config(_small(steps=10, labels="none"), visitor)
+    assert cfg.masks == "ignore" and sc3.masks == "ignore" and cfg.scene_type == "unbounded"

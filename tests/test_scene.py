@@ -344,3 +344,82 @@ def test_cli_info(tmp_path, capsys):
     assert out["splits"]["train"]["frames"] == 3 and out["splits"]["train"]["image_size"] == [8, 6]
     assert main(["info", str(tmp_path / "nope")]) == 2
     assert "scene not found" in capsys.readouterr().err
+
+
+def _write_llff(tmp_path, n=3, masks=True, size=(16, 12), hwf=(24.0, 32.0, 40.0)):
+    """An LLFF capture (poses_bounds.npy + images/ + masks/) whose OpenGL camera-to-world matrices are returned."""
+    (tmp_path / "images").mkdir(parents=True)
+    rows, c2ws = [], []
+    for k in range(n):
+        a = 0.4 * k
+        R = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+        t = np.array([0.1 * k, -0.2, 1.5 + k])
+        c2w = np.eye(4)
+        c2w[:3, :3], c2w[:3, 3] = R, t
+        c2ws.append(c2w)
+        # LLFF stores the rotation's columns as (down, right, backwards) = (-y, x, z) of OpenGL
+        P = np.concatenate([np.stack([-R[:, 1], R[:, 0], R[:, 2]], 1), t[:, None], np.array(hwf)[:, None]], 1)
+        rows.append(np.concatenate([P.ravel(), [0.5, 4.0]]))
+        write_png(tmp_path / "images" / f"IMG_{k:02d}.png", np.full((size[1], size[0], 3), 0.1 * k, np.float32))
+    np.save(tmp_path / "poses_bounds.npy", np.stack(rows))
+    if masks:
+        (tmp_path / "masks").mkdir()
+        for k in range(n):
+            m = np.zeros((size[1], size[0]), np.uint8)
+            m[2:8, 3:10] = 255
+            write_png(tmp_path / "masks" / f"IMG_{k:02d}.png", m)
+    return tmp_path, np.stack(c2ws)
+
+
+def test_llff_capture_loads_with_poses_focal_and_masks(tmp_path):
+    root, c2ws = _write_llff(tmp_path)
+    assert list_splits(root) == ["train", "test", "all"]
+    sc = load_scene(root, "all", upright="off")
+    assert sc.meta["format"] == "llff" and sc.meta["llff_near_far"] == [0.5, 4.0]
+    assert [f.image_path.name for f in sc.frames] == ["IMG_00.png", "IMG_01.png", "IMG_02.png"]
+    assert np.allclose(sc.cameras.c2w.numpy(), c2ws, atol=1e-6)
+    assert float(sc.cameras.fx[0]) == pytest.approx(20.0)  # 40 px at the poses' 32 px width, the photos are 16
+    assert float(sc.cameras.cx[0]) == 8.0 and float(sc.cameras.cy[0]) == 6.0
+    keep = sc.valid_mask(1)
+    assert int(keep.sum()) == 6 * 7 and bool(keep[3, 4]) and not bool(keep[0, 0])
+    assert [len(load_scene(root, s)) for s in ("train", "test")] == [2, 1]
+
+
+def test_llff_capture_errors(tmp_path):
+    root, _ = _write_llff(tmp_path / "a")
+    (root / "masks" / "IMG_01.png").unlink()
+    with pytest.raises(SceneError, match="no mask for IMG_01.png"):
+        load_scene(root, "all")
+    root, _ = _write_llff(tmp_path / "b", masks=False)
+    write_png(root / "images" / "extra.png", np.zeros((12, 16, 3), np.float32))
+    with pytest.raises(SceneError, match="3 poses but 4 photos"):
+        load_scene(root, "all")
+    root, _ = _write_llff(tmp_path / "c", masks=False, hwf=(32.0, 32.0, 40.0))
+    with pytest.raises(SceneError, match="16x12 but the poses say 32x32"):
+        load_scene(root, "all")
+    root, _ = _write_llff(tmp_path / "d", masks=False)
+    np.save(root / "poses_bounds.npy", np.zeros((3, 12)))
+    with pytest.raises(SceneError, match=r"expected an \[N, 17\] array"):
+        load_scene(root, "all")
+
+
+def test_jpeg_mask_is_cut_at_half_its_range(tmp_path):
+    """JPEG compression leaves faint values over a mask's background: they must not count as kept pixels."""
+    import cv2
+
+    root = _write_scene(tmp_path, n=2, w=32, h=32)
+    meta = json.loads((root / "transforms_train.json").read_text())
+    m = np.zeros((32, 32), np.uint8)
+    m[8:24, 8:24] = 255
+    m[0, :] = 6  # what compression leaves: faint, non-zero
+    cv2.imwrite(str(root / "m.jpg"), m, [cv2.IMWRITE_JPEG_QUALITY, 70])
+    write_png(root / "m.png", m)
+    for f, name in zip(meta["frames"], ("m.jpg", "m.png")):
+        f["mask_path"] = name
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+    sc = load_scene(root, "train", upright="off")
+    jpg, png = sc.load_extra(0, "mask"), sc.load_extra(1, "mask")
+    assert not bool(jpg[0].any()) and not bool(jpg[:6].any()) and bool(jpg[12:20, 12:20].all())
+    assert bool(png[0].all())  # a lossless mask keeps every non-zero pixel, as nerfstudio reads it
+    alpha = load_scene(root, "train", upright="off", masks="alpha").load_image(0, with_alpha=True)[3]
+    assert float(alpha[:6].max()) == 0.0 and float(alpha[12:20, 12:20].min()) == 1.0

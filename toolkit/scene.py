@@ -80,7 +80,7 @@ Units and spaces: ``depth`` metres along the camera axis (−z_cam; 16-bit PNG v
 ``depth_unit_scale_factor``, default 0.001, or ``.npy`` in metres; 0 = no hit); ``normal`` world-space unit
 normals (PNG encodes (n+1)/2); ``albedo`` linear base colour; ``roughness``/``metallic`` in [0, 1];
 ``semantic`` uint8 class ids (:data:`SEMANTIC_CLASSES`, 255 unlabelled); ``metal`` the metal-subclass
-annotation mask (non-zero = metal); ``mask`` foreground mask (non-zero = keep); ``radiance`` linear
+annotation mask (non-zero = metal); ``mask`` foreground mask (non-zero = keep; a JPEG or WebP mask: above half its range); ``radiance`` linear
 radiance (``.hdr``/``.exr``/``.npy``)."""
 
 _RADIAL_CV_MODELS = {"SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"}
@@ -292,6 +292,8 @@ class Scene:
         m = read_map(self.frames[i].extras["mask"], f"mask of {self._where(i)}")
         m = m[..., :1] if m.ndim == 3 else m[..., None]
         top = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(m.dtype, 1.0)
+        if self.frames[i].extras["mask"].suffix.lower() in _LOSSY_SUFFIXES:  # compression noise: cut, then filter
+            m = (m > _mask_cut(self.frames[i].extras["mask"], m)) * top
         m = np.ascontiguousarray(m.astype(np.float32) / top)
         m = self._postprocess(i, m, "mask", "area")
         return np.clip(m if m.ndim == 3 else m[..., None], 0.0, 1.0)
@@ -346,7 +348,7 @@ class Scene:
         if name in ("mask", "metal"):
             m = read_map(path, what)
             m = m[..., :1] if m.ndim == 3 else m[..., None]
-            m = self._postprocess(i, (m > 0).astype(np.uint8), name, "nearest")[..., 0]
+            m = self._postprocess(i, (m > _mask_cut(path, m)).astype(np.uint8), name, "nearest")[..., 0]
             return torch.from_numpy(m > 0)
         if name == "depth":
             raw = read_map(path, what)
@@ -382,10 +384,10 @@ def list_splits(path: str | Path) -> list[str]:
         found = [s for s in ("train", "val", "test") if (path / f"transforms_{s}.json").is_file()]
         if found:
             return found
-        if (path / "transforms.json").is_file() or _find_colmap(path) is not None:
+        if (path / "transforms.json").is_file() or _find_colmap(path) is not None or (path / LLFF_POSES).is_file():
             return ["train", "test", "all"]
-        raise _not_a_scene(path, f"{path}: no transforms_*.json, transforms.json or COLMAP model (cameras.txt + "
-                                 "images.txt) found")
+        raise _not_a_scene(path, f"{path}: no transforms_*.json, transforms.json, COLMAP model (cameras.txt + "
+                                 f"images.txt) or LLFF {LLFF_POSES} found")
     if path.suffix.lower() == ".npz":
         return ["train", "test", "all"]
     if path.suffix.lower() == ".json":
@@ -394,6 +396,15 @@ def list_splits(path: str | Path) -> list[str]:
 
 
 _PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".heic", ".heif", ".webp", ".dng")
+_LOSSY_SUFFIXES = (".jpg", ".jpeg", ".webp")
+
+
+def _mask_cut(path: Path, m: np.ndarray) -> float:
+    """The value a mask (or metal-mask) pixel must exceed to count: 0 for a lossless file, half the range for a
+    JPEG or WebP, whose compression leaves faint non-zero values along the edges and over the background."""
+    if path.suffix.lower() not in _LOSSY_SUFFIXES:
+        return 0
+    return {np.dtype(np.uint8): 127, np.dtype(np.uint16): 32767}.get(m.dtype, 0.5)
 
 
 def _not_a_scene(path: Path, message: str) -> SceneError:
@@ -483,9 +494,13 @@ def load_scene(
                                  single=True)
     elif _find_colmap(path) is not None:
         scene = _load_colmap(path, split, test_every, bg, downscale, distortion, upright)
+    elif (path / LLFF_POSES).is_file():
+        meta = _llff_meta(path)
+        scene = _load_transforms(path / LLFF_POSES, split, test_every, bg, downscale, distortion, upright,
+                                 single=True, meta=meta)
     else:
         raise _not_a_scene(path, f"{path}: no transforms_*.json, transforms.json, COLMAP model (cameras.txt + "
-                                 "images.txt) or .npz found")
+                                 f"images.txt), LLFF {LLFF_POSES} or .npz found")
     if len(scene) == 0:
         raise SceneError(f"{scene.source}: split '{split}' is empty (no frames); check the file or the split rule")
     if aabb is not None:
@@ -592,15 +607,16 @@ def _read_transforms(file: Path) -> dict:
     return meta
 
 
-def _all_poses_for_bounds(files: list[Path]) -> tuple[np.ndarray, np.ndarray, np.ndarray, set[str]]:
+def _all_poses_for_bounds(files: list[Path | dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray, set[str]]:
     """Poses, focal lengths and widths of every frame of every split (the scene box and the upright rotation must
-    not depend on the split), and the top-level keys of the files.
+    not depend on the split), and the top-level keys of the files (each a transforms JSON's path or its parsed
+    content).
 
     Unparseable poses are skipped here; the split that holds them reports them when it is loaded.
     """
     c2ws, fxs, ws, keys = [], [], [], set()
     for f in files:
-        meta = _read_transforms(f)
+        meta = f if isinstance(f, dict) else _read_transforms(f)
         keys.update(meta)
         for fm in meta["frames"]:
             try:
@@ -652,8 +668,10 @@ def _rotate_sh_coeffs(coeffs, record: dict) -> torch.Tensor:
 
 
 def _load_transforms(file: Path, split: str, test_every: int, bg, downscale: int, distortion: str, upright: str,
-                     single: bool, bounds_files: list[Path] | None = None) -> Scene:
-    meta = _read_transforms(file)
+                     single: bool, bounds_files: list[Path] | None = None, meta: dict | None = None) -> Scene:
+    """One split of a transforms JSON (``meta``: its content already parsed, or built from another layout such as
+    :func:`_llff_meta`; ``file`` then names the source in messages and its folder resolves the frames' paths)."""
+    meta = _read_transforms(file) if meta is None else meta
     frames_meta = meta["frames"]
     if single:
         order = _split_indices(len(frames_meta), split, test_every)
@@ -725,7 +743,7 @@ def _load_transforms(file: Path, split: str, test_every: int, bg, downscale: int
         frames.append(Frame(name=str(fm["file_path"]), image_path=img_path, extras=extras,
                             distortion=coeffs if has_dist else None, native_size=(w, h)))
     c2w = np.stack(c2ws) if c2ws else np.zeros((0, 4, 4))
-    all_c2w, all_fx, all_w, keys = _all_poses_for_bounds(bounds_files or [file])
+    all_c2w, all_fx, all_w, keys = _all_poses_for_bounds(bounds_files or [meta])
     kept = ("the file has an 'aabb' (its frame is the box's)" if "aabb" in keys
             else "written by dars poses (already upright)" if "dars_transform" in keys else None)
     record = _plan_upright(upright, all_c2w, kept=kept)
@@ -849,6 +867,68 @@ def _load_npz(file: Path, split: str, n_train: int, bg, downscale: int) -> Scene
 
 
 # ---------------------------------------------------------------------- COLMAP
+LLFF_POSES = "poses_bounds.npy"
+"""The file that marks an LLFF capture (LLFF's ``imgs2poses.py``, NeRD's and many forward-facing datasets): per photo
+a 3x5 pose-and-``[h, w, focal]`` matrix and the near/far depths, with the photos in ``images/``."""
+
+
+def _llff_meta(path: Path) -> dict:
+    """The transforms-JSON form of an LLFF capture at ``path``: ``poses_bounds.npy`` (float [N, 17]: a 3x5 matrix
+    ``[R | t | (h, w, focal)]`` per photo, rotation columns (down, right, backwards), then near and far), the photos
+    in ``images/`` paired with the rows in sorted file-name order (as LLFF writes them), and their masks in
+    ``masks/`` (same file stem, any image type; NeRD's layout) when that folder exists. The focal length is scaled to
+    the photos' actual width; the principal point is the image centre (LLFF's assumption)."""
+    file = path / LLFF_POSES
+    try:
+        arr = np.load(file, allow_pickle=False)
+    except Exception as e:  # noqa: BLE001
+        raise SceneError(f"{file} could not be read as a .npy array ({e}); re-export it with LLFF's imgs2poses.py") from e
+    if arr.ndim != 2 or arr.shape[1] not in (15, 17) or len(arr) == 0:
+        raise SceneError(f"{file}: expected an [N, 17] array (per photo a 3x5 pose/[h, w, focal] matrix, then near "
+                         f"and far), got shape {list(arr.shape)}")
+    img_dir = path / "images"
+    if not img_dir.is_dir():
+        raise SceneError(f"{file}: an LLFF capture needs its photos in {img_dir}/ (LLFF's images_4/, images_8/ are "
+                         "downscaled copies: keep images/ and use --downscale)")
+    photos = sorted(p for p in img_dir.iterdir() if p.is_file() and p.suffix.lower() in _PHOTO_SUFFIXES)
+    if len(photos) != len(arr):
+        raise SceneError(f"{file}: {len(arr)} poses but {len(photos)} photos in {img_dir}; LLFF pairs them in sorted "
+                         "file-name order, so the folder must hold exactly the photos that were posed")
+    mask_dir = path / "masks"
+    masks = {}
+    if mask_dir.is_dir():
+        masks = {p.stem: p for p in sorted(mask_dir.iterdir()) if p.is_file() and p.suffix.lower() in
+                 _PHOTO_SUFFIXES + (".npy",)}
+    frames = []
+    for k, (photo, row) in enumerate(zip(photos, arr)):
+        where = f"{file} row {k} ({photo.name})"
+        P = np.asarray(row[:15], np.float64).reshape(3, 5)
+        if not np.isfinite(P).all():
+            raise SceneError(f"{where}: the pose is not finite: {P.tolist()}")
+        h, w, focal = (float(v) for v in P[:, 4])
+        if not (h > 0 and w > 0 and focal > 0):
+            raise SceneError(f"{where}: h, w, focal must be positive, got {h}, {w}, {focal}")
+        w_img, h_img = _image_size(photo, where)
+        scale = w_img / w
+        if abs(h_img / h - scale) > 0.01 * scale:
+            raise SceneError(f"{where}: the photo is {w_img}x{h_img} but the poses say {w:g}x{h:g}, a different "
+                             "aspect ratio; use the photos the poses were made from")
+        c2w = np.eye(4)
+        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = P[:, 1], -P[:, 0], P[:, 2], P[:, 3]
+        fm = {"file_path": f"images/{photo.name}", "transform_matrix": c2w.tolist(), "fl_x": focal * scale,
+              "fl_y": focal * scale, "cx": w_img / 2.0, "cy": h_img / 2.0, "w": w_img, "h": h_img}
+        if masks:
+            if photo.stem not in masks:
+                raise SceneError(f"{where}: {mask_dir} has no mask for {photo.name} (a file named {photo.stem}.*); "
+                                 "give every photo a mask or remove the folder")
+            fm["mask_path"] = f"masks/{masks[photo.stem].name}"
+        frames.append(fm)
+    meta = {"frames": frames, "format": "llff"}
+    if arr.shape[1] == 17:
+        meta["llff_near_far"] = [float(arr[:, 15].min()), float(arr[:, 16].max())]
+    return meta
+
+
 def _find_colmap(path: Path) -> Path | None:
     for sub in ("", "sparse/0", "sparse", "colmap/sparse/0"):
         d = path / sub if sub else path

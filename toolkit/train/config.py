@@ -102,8 +102,9 @@ class TrainConfig:
     glare) are never drawn and weigh nothing in any photometric term, nor in the geometry targets taken from the
     photos, and ``dars eval`` leaves them out of its image scores; ``alpha`` — the mask is the photo's alpha: the
     capture becomes an object on a known background, as RGBA photos with transparency are; ``off`` — masks are not
-    read. ``auto``: ``ignore`` when the training frames have masks, else ``off`` (resolved by :func:`resolve_config`,
-    recorded in the run)."""
+    read. ``auto``: ``alpha`` when the training frames' masks outline an object (they keep less than
+    :data:`OBJECT_MASK_BORDER` of the photos' borders: NeRD's, IDR's and DTU's object masks), ``ignore`` when they
+    have other masks, else ``off`` (resolved by :func:`resolve_config`, recorded in the run)."""
     albedo_supervision: bool = False
     """Use ground-truth albedo maps in L_mat (eq. 20 a_gt) when the scene has them. Off by default: a real
     capture has none, and evaluating albedo MAE against the same maps would be circular."""
@@ -304,10 +305,34 @@ def resolve_scene_box(cfg: TrainConfig, scene: Scene, log=None) -> tuple[Scene, 
     return _r(scene, aabb=torch.tensor(box, dtype=torch.float32)), cfg
 
 
+OBJECT_MASK_BORDER = 0.5
+"""Masks that keep less than this share of the photos' borders (the median photo) outline an object: the thing
+photographed lies inside the frame and the masks cut it out of its surroundings (NeRD, IDR, DTU). Masks that mark
+what to leave out (a visitor, a tripod: nerfstudio's use) keep most of the border. Not a tuned constant: the two
+kinds sit near 0 and near 1."""
+
+
+def masks_border_share(scene: Scene, n: int = 5) -> float | None:
+    """The share of border pixels that the masks keep, on the median of ``n`` evenly spaced photos with a mask
+    (None when no frame has one, or when those masks keep no pixel at all). Reads only the masks."""
+    with_mask = [i for i, f in enumerate(scene.frames) if "mask" in f.extras]
+    if not with_mask:
+        return None
+    pick = sorted({with_mask[round(k * (len(with_mask) - 1) / max(n - 1, 1))] for k in range(n)})
+    shares, kept = [], 0
+    for i in pick:
+        m = scene.load_extra(i, "mask")
+        border = torch.cat([m[0], m[-1], m[1:-1, 0], m[1:-1, -1]])
+        shares.append(float(border.float().mean()))
+        kept += int(m.sum())
+    return float(np.median(shares)) if kept else None
+
+
 def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfig, Scene]:
     """Fill data-dependent settings; returns the config and the scene with its resolved box.
 
-    * ``masks`` (``auto`` → ``ignore`` when the photos have masks, else ``off``);
+    * ``masks`` (``auto`` → ``alpha`` when the photos' masks outline an object (:func:`masks_border_share` under
+      :data:`OBJECT_MASK_BORDER`), ``ignore`` when they have other masks, else ``off``);
     * ``scene_type`` (``auto`` → ``unbounded`` or ``object``) and with it the field's contraction;
     * ``deferred`` left None: True (shading once per ray) for an unbounded scene, False for an object;
     * the loss weights left None (:data:`ROOM_LOSSES` for a room, :data:`OBJECT_LOSSES` or 0 for an object);
@@ -318,10 +343,18 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
     """
     if cfg.masks == "auto":
         has = sum("mask" in f.extras for f in scene.frames)
-        cfg = replace(cfg, masks="ignore" if has else "off")
-        if has and log is not None:
+        share = masks_border_share(scene) if has else None
+        outline = share is not None and share < OBJECT_MASK_BORDER
+        cfg = replace(cfg, masks="alpha" if outline else "ignore" if has else "off")
+        if outline and log is not None:
+            log(f"[dars] masks: {has} of {len(scene)} photos have a mask_path and the masks outline an object (they "
+                f"keep {100 * share:.0f} % of the photos' borders, under {100 * OBJECT_MASK_BORDER:.0f} %): they are "
+                "the photos' alpha, an object on a plain background (--masks ignore: only leave their 0 pixels out)")
+        elif has and log is not None:
             log(f"[dars] masks: {has} of {len(scene)} photos have a mask_path; its 0 pixels are left out of training "
                 "and scoring (--masks alpha: the masks are the photos' alpha; --masks off: not read)")
+    if cfg.masks in ("alpha", "off") and scene.masks != cfg.masks:
+        scene = replace(scene, masks=cfg.masks)
     kind = cfg.scene_type
     if kind == "auto":
         kind = "object" if photos_have_transparency(scene) else "unbounded"
