@@ -578,6 +578,9 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     if masks_ignored:
         log("[dars eval] the test photos' masks (mask_path 0) are left out of the image scores: PSNR over the kept "
             "pixels, SSIM/FLIP/LPIPS with the photo in place of the render where the mask is 0")
+    from .scene import photos_have_transparency
+
+    object_alpha = photos_have_transparency(scene)  # an object on a plain background: also score it alone
     log(f"[dars eval] {run.path}: rendering {len(views)} of {n_all} '{split}' views ({h}x{w} px)")
     bar = tqdm(views, desc="eval", unit="view", file=sys.stderr, disable=not cfg.progress)
     for i in bar:
@@ -596,6 +599,9 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
             score_disp = torch.where(keep[None], pred_disp, gt_stored)
             score_srgb = torch.where(keep[None], pred_srgb, gt_srgb)
         row["psnr"] = float(psnr(score_disp, gt_stored, keep))
+        if object_alpha:  # the object's pixels alone (alpha >= 0.5): the plain background is easy to match
+            obj = scene.load_image(i, with_alpha=True)[3] >= 0.5
+            row["psnr_object"] = float(psnr(score_disp, gt_stored, obj)) if bool(obj.any()) else None
         row["ssim"] = float(ssim(score_disp, gt_stored)) if "ssim" not in unavailable else None
         row["flip"] = float(flip(score_srgb.clamp(0, 1), gt_srgb.clamp(0, 1)))
         row["lpips"] = float(lpips(score_srgb[None], gt_srgb[None], cfg.lpips_weights)[0]) if lpips_ok else None
@@ -734,7 +740,9 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     if cfg.weight_views:
         sampling.update(_weight_figures(run, cfg, figures))
 
+    obj_vals = [r["psnr_object"] for r in per_view if r.get("psnr_object") is not None]
     details = {
+        "object_psnr": sum(obj_vals) / len(obj_vals) if obj_vals else None,
         "geometry": _geometry_by_class(geo_px),
         "view_consistency": vc_detail,
         "miou_per_class": miou_per_class,
@@ -764,6 +772,9 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
             "masks": ("the test photos' mask_path 0 pixels are not scored: PSNR over the kept pixels, SSIM/FLIP/LPIPS "
                       "with the photo in place of the render there (per_view masked_out: the share left out)")
             if masks_ignored else None,
+            "object_psnr": "photos with transparency (RGBA, or masks read as alpha): mean over views of the PSNR "
+                           "over the pixels whose alpha is at least 0.5, the object alone (per_view psnr_object); "
+                           "psnr also counts the plain background, which is easy to match" if object_alpha else None,
             "pooling": "psnr/ssim/flip/lpips: mean of per-view values; albedo/roughness/normal: over all masked "
                        "pixels of all views; miou: one confusion over all views",
         },

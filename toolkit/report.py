@@ -385,6 +385,9 @@ def _eval_markdown(doc: dict, written: dict[str, Path]) -> str:
          f"{ev['image_size'][1]} px, checkpoint step {ev['checkpoint_step']}. Written by `dars eval`; every number "
          "below is also in [metrics.json](metrics.json).", "",
          "## Headline (Table 5 layout)", "", headline_markdown(doc), "", headline_markdown(doc, EXTRA_COLUMNS), ""]
+    if det.get("object_psnr") is not None:
+        L += [f"The object alone (the pixels whose alpha is at least 0.5; PSNR above also counts the plain "
+              f"background): **PSNR {det['object_psnr']:.2f} dB**.", ""]
     if doc["unavailable"]:
         L += ["Unavailable metrics (null in the JSON):", ""]
         L += [f"- **{k}**: {r}" for k, r in doc["unavailable"].items()]

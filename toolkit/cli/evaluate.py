@@ -118,6 +118,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         return 0
     print(f"{run_dir} — split '{args.split}', {doc['eval']['views']} views, step {doc['eval']['checkpoint_step']}")
     print(headline_text(doc, doc["unavailable"]))
+    if doc["details"].get("object_psnr") is not None:
+        print(f"object alone (alpha >= 0.5, without the plain background): PSNR {doc['details']['object_psnr']:.2f} dB")
     print(f"wrote {written['metrics']} and {written['report']}")
     return 0
 
