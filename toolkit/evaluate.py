@@ -70,7 +70,7 @@ from .losses import PAINTING_ROUGHNESS
 from .metrics import (MetricUnavailable, albedo_mae, albedo_mae_aligned, env_light_l2, flip, load_lpips_weights, lpips,
                       material_mask, mean_iou, metallic_mae, normal_mae_deg, patch_masks, psnr, roughness_rmse, ssim,
                       uniform_view_indices, view_consistency)
-from .scene import SEMANTIC_CLASSES, UNLABELLED, Cameras, Scene, load_scene
+from .scene import SEMANTIC_CLASSES, UNLABELLED, Cameras, Scene, load_scene, photos_have_transparency
 
 __all__ = ["METRIC_KEYS", "JSON_SECTIONS", "EvalConfig", "EvalResult", "EvalFigures", "evaluate_run",
            "training_info", "variant_of", "training_sample_counts", "choose_patch", "chamfer_to_reference"]
@@ -578,8 +578,6 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     if masks_ignored:
         log("[dars eval] the test photos' masks (mask_path 0) are left out of the image scores: PSNR over the kept "
             "pixels, SSIM/FLIP/LPIPS with the photo in place of the render where the mask is 0")
-    from .scene import photos_have_transparency
-
     object_alpha = photos_have_transparency(scene)  # an object on a plain background: also score it alone
     log(f"[dars eval] {run.path}: rendering {len(views)} of {n_all} '{split}' views ({h}x{w} px)")
     bar = tqdm(views, desc="eval", unit="view", file=sys.stderr, disable=not cfg.progress)
@@ -588,7 +586,8 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
         rgb_lin = out["rgb"].clamp_min(0.0).permute(2, 0, 1)  # [3, H, W] linear radiance
         disp = rgb_lin.clamp(0.0, 1.0)
         pred_disp = linear_to_srgb(disp) if scene.srgb else disp
-        gt_stored = scene.load_image(i)
+        rgba = scene.load_image(i, with_alpha=True) if object_alpha else None  # one decode serves both
+        gt_stored = rgba[:3] if rgba is not None else scene.load_image(i)
         gt_srgb = gt_stored if scene.srgb else linear_to_srgb(gt_stored.clamp(0, 1))
         pred_srgb = pred_disp if scene.srgb else linear_to_srgb(disp)
         row: dict[str, Any] = {"index": i, "key": scene.frames[i].key}
@@ -600,7 +599,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
             score_srgb = torch.where(keep[None], pred_srgb, gt_srgb)
         row["psnr"] = float(psnr(score_disp, gt_stored, keep))
         if object_alpha:  # the object's pixels alone (alpha >= 0.5): the plain background is easy to match
-            obj = scene.load_image(i, with_alpha=True)[3] >= 0.5
+            obj = rgba[3] >= 0.5
             row["psnr_object"] = float(psnr(score_disp, gt_stored, obj)) if bool(obj.any()) else None
         row["ssim"] = float(ssim(score_disp, gt_stored)) if "ssim" not in unavailable else None
         row["flip"] = float(flip(score_srgb.clamp(0, 1), gt_srgb.clamp(0, 1)))

@@ -289,11 +289,12 @@ class Scene:
 
     def _mask_alpha(self, i: int) -> np.ndarray:
         """float [H, W, 1] in [0, 1]: frame ``i``'s mask as an alpha (area-filtered when downscaled)."""
-        m = read_map(self.frames[i].extras["mask"], f"mask of {self._where(i)}")
+        path = self.frames[i].extras["mask"]
+        m = read_map(path, f"mask of {self._where(i)}")
         m = m[..., :1] if m.ndim == 3 else m[..., None]
         top = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(m.dtype, 1.0)
-        if self.frames[i].extras["mask"].suffix.lower() in _LOSSY_SUFFIXES:  # compression noise: cut, then filter
-            m = (m > _mask_cut(self.frames[i].extras["mask"], m)) * top
+        if path.suffix.lower() in _LOSSY_SUFFIXES:  # compression noise: cut, then area-filter (lossless: soft as is)
+            m = (m > _mask_cut(path, m)) * top
         m = np.ascontiguousarray(m.astype(np.float32) / top)
         m = self._postprocess(i, m, "mask", "area")
         return np.clip(m if m.ndim == 3 else m[..., None], 0.0, 1.0)
@@ -866,7 +867,7 @@ def _load_npz(file: Path, split: str, n_train: int, bg, downscale: int) -> Scene
                  _array_images=images[idx])
 
 
-# ---------------------------------------------------------------------- COLMAP
+# ---------------------------------------------------------------------- LLFF
 LLFF_POSES = "poses_bounds.npy"
 """The file that marks an LLFF capture (LLFF's ``imgs2poses.py``, NeRD's and many forward-facing datasets): per photo
 a 3x5 pose-and-``[h, w, focal]`` matrix and the near/far depths, with the photos in ``images/``."""
@@ -929,6 +930,7 @@ def _llff_meta(path: Path) -> dict:
     return meta
 
 
+# ---------------------------------------------------------------------- COLMAP
 def _find_colmap(path: Path) -> Path | None:
     for sub in ("", "sparse/0", "sparse", "colmap/sparse/0"):
         d = path / sub if sub else path
