@@ -148,10 +148,20 @@ def _cv2():
     return cv2
 
 
-def read_image(path: str | os.PathLike, what: str = "image") -> np.ndarray:
+JPEG_REDUCTIONS = (8, 4, 2)
+"""The factors libjpeg decodes a JPEG at directly (its scaled inverse DCT): ``read_image(..., reduce=k)``."""
+
+
+def read_image(path: str | os.PathLike, what: str = "image", reduce: int = 1) -> np.ndarray:
     """Decode an image file to float32 H-W-C in [0, 1] (RGB or RGBA order; 8- or 16-bit aware).
 
     HDR formats (``.hdr``, ``.exr``) are returned unscaled (linear radiance). ``.npy`` files are loaded as is.
+
+    Args:
+        reduce: 2, 4 or 8 decodes a JPEG at that fraction of its size (``ceil(size / reduce)``; the DCT's own
+            low-pass, several times faster than decoding 4000-px photos whole and shrinking them). Other files,
+            and ``reduce=1``, decode whole. EXIF orientation is ignored either way, as the poses are for the
+            stored pixels.
 
     Raises:
         SceneError: if the file is missing or cannot be decoded, naming the file.
@@ -173,7 +183,7 @@ def read_image(path: str | os.PathLike, what: str = "image") -> np.ndarray:
         return read_exr(path)
     cv2 = _cv2()
     data = np.fromfile(path, dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    img = cv2.imdecode(data, _decode_flag(cv2, path, reduce)) if data.size else None
     if img is None:
         raise SceneError(f"{what} {path} is corrupt or not an image (could not decode {data.size} bytes); re-export it")
     if img.dtype == np.uint8:
@@ -191,8 +201,22 @@ def read_image(path: str | os.PathLike, what: str = "image") -> np.ndarray:
     return out
 
 
-def read_map(path: str | os.PathLike, what: str = "map") -> np.ndarray:
-    """Read a per-pixel map keeping integer values (for labels): uint8/uint16 arrays H-W(-C) as stored."""
+def _decode_flag(cv2, path: Path, reduce: int) -> int:
+    """OpenCV's imdecode flag: the file as stored, or a JPEG at 1/``reduce`` of its size."""
+    if reduce == 1:
+        return cv2.IMREAD_UNCHANGED
+    if reduce not in JPEG_REDUCTIONS:
+        raise ValueError(f"reduce must be 1 or one of {JPEG_REDUCTIONS}, got {reduce!r}")
+    if path.suffix.lower() not in (".jpg", ".jpeg"):
+        return cv2.IMREAD_UNCHANGED
+    return getattr(cv2, f"IMREAD_REDUCED_COLOR_{reduce}") | cv2.IMREAD_IGNORE_ORIENTATION
+
+
+def read_map(path: str | os.PathLike, what: str = "map", reduce: int = 1) -> np.ndarray:
+    """Read a per-pixel map keeping integer values (for labels): uint8/uint16 arrays H-W(-C) as stored.
+
+    ``reduce`` (2, 4 or 8) decodes a JPEG (a mask) at that fraction of its size, as :func:`read_image` does; never
+    use it on labels, whose values must not be blended."""
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"{what} not found: {path}")
@@ -203,7 +227,7 @@ def read_map(path: str | os.PathLike, what: str = "map") -> np.ndarray:
             raise SceneError(f"{what} {path} could not be read as .npy: {e}") from e
     cv2 = _cv2()
     data = np.fromfile(path, dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    img = cv2.imdecode(data, _decode_flag(cv2, path, reduce)) if data.size else None
     if img is None:
         raise SceneError(f"{what} {path} is corrupt or not an image; re-export it")
     if img.ndim == 3 and img.shape[2] >= 3:

@@ -328,7 +328,7 @@ def priors_segment(scene, out_dir=None, backend: str = "shipped", model: str | N
     def _labels(seg):
         if prior_s is None:
             return seg.labels[0]
-        return apply_scene_prior(seg.probabilities, prior_s, prior_t)[0].argmax(0)
+        return apply_scene_prior(seg.probabilities, prior_s, prior_t)[0].max(0).indices  # first max, as argmax
 
     preds, gts, mpred, mgt = [], [], [], []
     sheet_idx = set(np.linspace(0, len(scene) - 1, min(8, len(scene))).round().astype(int).tolist())

@@ -39,7 +39,7 @@ import torch
 
 from ._checks import SceneError, check_rigid_pose
 from .cameras import Cameras, RayBundle, generate_rays, intersect_aabb, project_points
-from .io import read_image, read_map
+from .io import JPEG_REDUCTIONS, read_image, read_map
 from .upright import PLANE_MAX_REPROJ_PX, plan_upright_rotation
 
 __all__ = [
@@ -214,17 +214,31 @@ class Scene:
     def _expected_hw(self, i: int) -> tuple[int, int]:
         return int(self.cameras.height[i]), int(self.cameras.width[i])
 
-    def _postprocess(self, i: int, img: np.ndarray, what: str, interp: str) -> np.ndarray:
-        """Undistort, downscale and size-check one decoded H-W-C map of frame ``i``."""
+    def _jpeg_reduction(self, i: int, path: Path | None = None) -> int:
+        """The factor frame ``i``'s photo (or its map at ``path``) may be decoded at directly
+        (:func:`toolkit.io.read_image`'s ``reduce``): the largest of 8, 4, 2 that divides the downscale and the
+        stored size, for a JPEG without lens distortion (undistortion works on the whole photo); 1 otherwise."""
+        f = self.frames[i]
+        path = f.image_path if path is None else path
+        if (self.downscale == 1 or path is None or f.native_size is None
+                or path.suffix.lower() not in (".jpg", ".jpeg")
+                or (f.distortion is not None and any(abs(c) > 0 for c in f.distortion))):
+            return 1
+        return next((k for k in JPEG_REDUCTIONS
+                     if self.downscale % k == 0 and f.native_size[0] % k == 0 and f.native_size[1] % k == 0), 1)
+
+    def _postprocess(self, i: int, img: np.ndarray, what: str, interp: str, reduced: int = 1) -> np.ndarray:
+        """Undistort, downscale and size-check one decoded H-W-C map of frame ``i`` (decoded at 1/``reduced`` of
+        its stored size)."""
         import cv2
 
         f = self.frames[i]
         if f.native_size is not None:
             nw, nh = f.native_size
-            if img.shape[1] != nw or img.shape[0] != nh:
+            if img.shape[1] * reduced != nw or img.shape[0] * reduced != nh:
                 raise SceneError(
-                    f"{self._where(i)}: {what} is {img.shape[1]}x{img.shape[0]} but the camera intrinsics say "
-                    f"{nw}x{nh}; fix w/h in the transforms file or resize the image"
+                    f"{self._where(i)}: {what} is {img.shape[1] * reduced}x{img.shape[0] * reduced} but the camera "
+                    f"intrinsics say {nw}x{nh}; fix w/h in the transforms file or resize the image"
                 )
         if f.distortion is not None and any(abs(c) > 0 for c in f.distortion):
             K = np.array(
@@ -242,7 +256,7 @@ class Scene:
             img = cv2.remap(img, map1, map2, flag, borderMode=cv2.BORDER_CONSTANT)
             if squeeze and img.ndim == 2:
                 img = img[..., None]
-        if self.downscale > 1:
+        if self.downscale > reduced:
             h, w = self._expected_hw(i)
             squeeze = img.ndim == 3 and img.shape[2] == 1
             flag = cv2.INTER_NEAREST if interp == "nearest" else cv2.INTER_AREA
@@ -269,15 +283,17 @@ class Scene:
         """
         if not 0 <= i < len(self):
             raise IndexError(f"frame index {i} out of range for split '{self.split}' with {len(self)} frames")
+        k = 1
         if self._array_images is not None:
             img = np.asarray(self._array_images[i], dtype=np.float32)
             if img.ndim == 2:
                 img = img[..., None].repeat(3, -1)
         else:
-            img = read_image(self.frames[i].image_path, what=f"image of {self._where(i)}")
+            k = self._jpeg_reduction(i)
+            img = read_image(self.frames[i].image_path, what=f"image of {self._where(i)}", reduce=k)
         if img.shape[2] == 1:
             img = np.repeat(img, 3, axis=2)
-        img = self._postprocess(i, img, "image", "area")
+        img = self._postprocess(i, img, "image", "area", reduced=k)
         rgb = img[..., :3]
         alpha = img[..., 3:4] if img.shape[2] >= 4 else np.ones_like(img[..., :1])
         if self.masks == "alpha" and "mask" in self.frames[i].extras:
@@ -290,13 +306,14 @@ class Scene:
     def _mask_alpha(self, i: int) -> np.ndarray:
         """float [H, W, 1] in [0, 1]: frame ``i``'s mask as an alpha (area-filtered when downscaled)."""
         path = self.frames[i].extras["mask"]
-        m = read_map(path, f"mask of {self._where(i)}")
+        r = self._jpeg_reduction(i, path) // 2 or 1  # a JPEG at half the reduction its photo gets: soft 2x2 edges
+        m = read_map(path, f"mask of {self._where(i)}", reduce=r)
         m = m[..., :1] if m.ndim == 3 else m[..., None]
         top = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(m.dtype, 1.0)
         if path.suffix.lower() in _LOSSY_SUFFIXES:  # compression noise: cut, then area-filter (lossless: soft as is)
             m = (m > _mask_cut(path, m)) * top
         m = np.ascontiguousarray(m.astype(np.float32) / top)
-        m = self._postprocess(i, m, "mask", "area")
+        m = self._postprocess(i, m, "mask", "area", reduced=r)
         return np.clip(m if m.ndim == 3 else m[..., None], 0.0, 1.0)
 
     def valid_mask(self, i: int) -> torch.Tensor | None:
@@ -347,9 +364,10 @@ class Scene:
                                  f"0-6 ({', '.join(SEMANTIC_CLASSES)}) and 255 (unlabelled)")
             return torch.from_numpy(lab.astype(np.int64))
         if name in ("mask", "metal"):
-            m = read_map(path, what)
+            r = self._jpeg_reduction(i, path)
+            m = read_map(path, what, reduce=r)
             m = m[..., :1] if m.ndim == 3 else m[..., None]
-            m = self._postprocess(i, (m > _mask_cut(path, m)).astype(np.uint8), name, "nearest")[..., 0]
+            m = self._postprocess(i, (m > _mask_cut(path, m)).astype(np.uint8), name, "nearest", reduced=r)[..., 0]
             return torch.from_numpy(m > 0)
         if name == "depth":
             raw = read_map(path, what)

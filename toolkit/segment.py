@@ -606,7 +606,7 @@ def _predict_builtin(model: nn.Module, images: torch.Tensor, batch_size: int
                                                                      align_corners=False)
                 pr = logits.softmax(1)
                 probs.append(pr.to(images.device, images.dtype))
-                labs.append(pr.argmax(1).to(images.device))
+                labs.append(pr.max(1).indices.to(images.device))  # max's indices: ~8x faster than argmax(1) on CPU
                 if has_metal:
                     metals.append(metal[:, 0].to(images.device, images.dtype))
     finally:
@@ -697,7 +697,7 @@ def _predict_onnx(model, images: torch.Tensor, batch_size: int
                 logits = F.interpolate(logits, size=(H, W), mode="bilinear", align_corners=False)
             pr = logits.softmax(1)
             probs.append(pr)
-            labs.append(pr.argmax(1))
+            labs.append(pr.max(1).indices)
         elif out.ndim == 3:
             if out.shape[0] != n or not np.issubdtype(out.dtype, np.integer):
                 raise SegmentationError(f"{where}: output '{outs[0].name}' has shape {list(out.shape)} and type "
