@@ -190,21 +190,46 @@ def test_no_feature_point_on_a_masked_pixel(masked):
     assert bool(((t_off["rows"] < BLOCK) & (t_off["cols"] < BLOCK)).any())  # without the masks, some land there
 
 
-def test_masks_that_outline_an_object_become_its_alpha(tmp_path, masked):
-    """Object masks (NeRD, IDR, DTU: the thing photographed cut out of its surroundings) keep little of the photos'
-    borders: ``--masks auto`` reads them as alpha, and the scene trains as an object. Masks that leave out a visitor
-    keep most of the border and stay ``ignore``."""
-    from toolkit.train.config import OBJECT_MASK_BORDER, masks_border_share, resolve_config
-
-    root = make_scene(tmp_path / "s", n_train=6, n_test=2, size=SIZE)
+def _object_masks(root: Path, centre, radius) -> Path:
+    """A synthetic scene whose every frame has the same disk as its mask (an object cut out, as NeRD's masks)."""
+    root = make_scene(root, n_train=6, n_test=2, size=SIZE)
     yy, xx = np.mgrid[:SIZE, :SIZE]
-    disk = (((yy - SIZE / 2) ** 2 + (xx - SIZE / 2) ** 2) < (SIZE / 3) ** 2).astype(np.uint8) * 255
+    disk = ((yy - centre[0]) ** 2 + (xx - centre[1]) ** 2 < radius ** 2).astype(np.uint8) * 255
     write_png(root / "disk.png", disk)
     for split in ("train", "test"):
         meta = json.loads((root / f"transforms_{split}.json").read_text())
         for f in meta["frames"]:
             f["mask_path"] = "disk.png"
         (root / f"transforms_{split}.json").write_text(json.dumps(meta))
+    return root
+
+
+def test_priors_see_an_object_as_training_does(tmp_path):
+    """With masks that outline an object, the priors of `dars train` (and of `dars priors ...`) are computed on the
+    photos composited on the background, as training sees them, not on the raw photos with their surroundings."""
+    from toolkit.cli import main
+
+    root = _object_masks(tmp_path / "s", (SIZE / 2, SIZE / 2), SIZE / 3)
+    run = tmp_path / "run"
+    assert main(["train", str(root), "--out", str(run), "--steps", "2", "--batch-rays", "256", "--quiet"]) == 0
+    rec = json.loads((run / "priors" / "priors.json").read_text())
+    assert rec["photos"].startswith("composited on the background")
+    assert "out_of_domain" in json.loads((run / "priors" / "light" / "light.json").read_text())
+    labels = read_image(run / "priors" / "segment" / f"{load_scene(root, 'train').frames[0].key}.png")
+    assert labels.shape[:2] == (SIZE, SIZE)
+    for masks, composited in (("auto", True), ("ignore", False)):
+        out = tmp_path / f"light_{masks}"
+        assert main(["priors", "light", str(root), "--out", str(out), "--masks", masks, "--json"]) == 0
+        assert ("out_of_domain" in json.loads((out / "light.json").read_text())) == composited
+
+
+def test_masks_that_outline_an_object_become_its_alpha(tmp_path, masked):
+    """Object masks (NeRD, IDR, DTU: the thing photographed cut out of its surroundings) keep little of the photos'
+    borders: ``--masks auto`` reads them as alpha, and the scene trains as an object. Masks that leave out a visitor
+    keep most of the border and stay ``ignore``."""
+    from toolkit.train.config import OBJECT_MASK_BORDER, masks_border_share, resolve_config
+
+    root = _object_masks(tmp_path / "s", (SIZE / 2, SIZE / 2), SIZE / 3)
     sc = load_scene(root, "train")
     assert masks_border_share(sc) == 0.0
     cfg, sc2 = resolve_config(_small(steps=10, labels="none"), sc)
@@ -225,14 +250,7 @@ def test_eval_scores_a_masked_object_alone_too(tmp_path):
     from toolkit.metrics import psnr
     from toolkit.train import load_run, train
 
-    root = make_scene(tmp_path / "s", n_train=6, n_test=2, size=SIZE)
-    yy, xx = np.mgrid[:SIZE, :SIZE]
-    write_png(root / "disk.png", ((((yy - 16) ** 2 + (xx - 16) ** 2) < 100) * 255).astype(np.uint8))
-    for split in ("train", "test"):
-        meta = json.loads((root / f"transforms_{split}.json").read_text())
-        for f in meta["frames"]:
-            f["mask_path"] = "disk.png"
-        (root / f"transforms_{split}.json").write_text(json.dumps(meta))
+    root = _object_masks(tmp_path / "s", (16, 16), 10)
     out = tmp_path / "run"
     train(root, out, _small(steps=4, labels="none", pretrain_fraction=0.5), progress_bar=False, log=lambda m: None)
     run = load_run(out)

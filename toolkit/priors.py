@@ -433,6 +433,8 @@ def compute_priors(scene: "Scene", root: str | os.PathLike, segmenter: str | os.
         "segment": {"model": str(segmenter) if segmenter else str(DEFAULT_SEGMENTER), "seconds": round(t1 - t0, 1),
                     "metal_mask": seg.get("metal_mask"), "miou_vs_scene_labels": seg.get("miou_heldout")},
         "light": {"model": light["model"]["path"], "seconds": round(t2 - t1, 1), "coeffs": light["coeffs"]},
+        "photos": ("composited on the background by their masks (an object captured with masks)"
+                   if scene.masks == "alpha" and any("mask" in f.extras for f in scene.frames) else "as they are"),
         "weights": "computed by training from the photos and the predicted labels and metal masks",
         "ground_truth_inputs": "none",
     }

@@ -97,6 +97,10 @@ def _common(q: argparse.ArgumentParser, stage: str) -> None:
                    help="shrink the photos N times on load (default: 1; `dars train` reads maps made at another "
                         "--downscale, resized)")
     q.add_argument("--out", default=None, help=f"output directory (default: <scene>/priors/{stage})")
+    q.add_argument("--masks", default="auto", choices=["auto", "ignore", "alpha", "off"],
+                   help="what the frames' mask_path maps mean, as for dars train: auto (default) reads masks that "
+                        "outline an object as the photos' alpha (the photos are composited on the background, as "
+                        "dars train sees them), other masks as pixels to ignore")
     q.add_argument("--force", action="store_true",
                    help="write into a non-empty folder beside its files (files dars did not write are never replaced)")
     q.add_argument("--json", action="store_true", help="print only JSON on stdout")
@@ -143,12 +147,20 @@ def _out(args: argparse.Namespace, scene, stage: str):
     return OutputDir(scene.priors_dir(stage), stage, force=args.force, option=option).check()
 
 
+def _load(args: argparse.Namespace, split: str | None = None, **kw):
+    """The scene of a prior stage, its masks read as ``--masks`` says (:func:`toolkit.train.config.resolve_masks`)."""
+    from ..scene import load_scene
+    from ..train.config import resolve_masks
+
+    scene = load_scene(args.scene, split or args.split, downscale=args.downscale, **kw)
+    return resolve_masks(args.masks, scene, log=lambda m: print(m, file=sys.stderr))[1]
+
+
 def cmd_weights(args: argparse.Namespace) -> int:
     from ..edges import WeightMapConfig
     from ..priors import priors_weights
-    from ..scene import load_scene
 
-    scene = load_scene(args.scene, args.split, downscale=args.downscale)
+    scene = _load(args)
     cfg = WeightMapConfig(alpha=args.alpha, beta=args.beta, gamma=args.gamma, lambda_reg=args.lambda_reg)
     seg = args.segment
     if seg is None and args.out and (Path(args.out).parent / "segment").is_dir():
@@ -173,13 +185,13 @@ def cmd_segment(args: argparse.Namespace) -> int:
     from export.onnx import export_segmenter_onnx
 
     from ..priors import priors_segment
-    from ..scene import list_splits, load_scene
+    from ..scene import list_splits
     from ..segment import TrainSegmenterConfig
 
-    scene = load_scene(args.scene, args.split, downscale=args.downscale)
+    scene = _load(args)
     eval_scene = None
     if args.eval_split != "none" and args.eval_split != args.split and args.eval_split in list_splits(args.scene):
-        eval_scene = load_scene(args.scene, args.eval_split, downscale=args.downscale)
+        eval_scene = _load(args, args.eval_split)
     tcfg = (TrainSegmenterConfig(steps=args.steps, seed=args.seed, lr=1e-3, progress=True)
             if args.backend == "builtin" else None)
     if args.model and not Path(args.model).is_file():
@@ -208,9 +220,8 @@ def cmd_segment(args: argparse.Namespace) -> int:
 def cmd_colour(args: argparse.Namespace) -> int:
     from ..colour import ColourConfig
     from ..priors import priors_colour
-    from ..scene import load_scene
 
-    scene = load_scene(args.scene, args.split, downscale=args.downscale)
+    scene = _load(args)
     cfg = ColourConfig(detector=args.detector, gauge="reference" if args.reference is not None else args.gauge,
                        reference=args.reference or 0, srgb=scene.srgb, progress=True)
     if args.reference is not None and args.reference >= len(scene):
@@ -234,9 +245,8 @@ def cmd_colour(args: argparse.Namespace) -> int:
 
 def cmd_light(args: argparse.Namespace) -> int:
     from ..priors import priors_light
-    from ..scene import load_scene
 
-    scene = load_scene(args.scene, args.split, downscale=args.downscale)
+    scene = _load(args)
     with _out(args, scene, "light").guard() as out:
         info = priors_light(scene, out, args.weights, args.reduce, args.batch_size)
     if args.json:
@@ -268,9 +278,8 @@ _YAW_SOURCE = {"lines": "photos' edges", "points": "sparse points", "cameras": "
 def cmd_layout(args: argparse.Namespace) -> int:
     from ..layout import LayoutConfig
     from ..priors import priors_layout
-    from ..scene import load_scene
 
-    scene = load_scene(args.scene, args.split, downscale=args.downscale, upright="off" if args.no_upright else "auto")
+    scene = _load(args, upright="off" if args.no_upright else "auto")
     log = None if args.json else (lambda m: print(m, file=sys.stderr))
     with _out(args, scene, "layout").guard() as out:
         d = priors_layout(scene, out, cfg=LayoutConfig(yaw_from=args.yaw_from), log=log)

@@ -114,7 +114,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="what the frames' mask_path maps mean: ignore (nerfstudio's meaning) — their 0 pixels "
                         "(people, a tripod, glare) are left out of training and of dars eval's scores; alpha — the "
                         "mask is the photo's alpha (an object captured with masks becomes an object on a white "
-                        "background, as RGBA photos are); off — not read; auto (default): ignore when the photos have masks")
+                        "background, as RGBA photos are); off — not read; auto (default): alpha when the masks "
+                        "outline an object (they keep under half of the photos' borders), else ignore")
     q.add_argument("--snapshots", default="", help="comma-separated minutes at which to save the field, e.g. 2,5,10")
     q.add_argument("--batch-rays", type=COUNT, default=0, help="override rays per step (≥ 16)")
     q.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
@@ -323,10 +324,12 @@ def _auto_priors(args: argparse.Namespace, ddp) -> str | None:
     from ..outputs import OutputDir
     from ..priors import compute_priors, scene_has_priors
     from ..scene import load_scene
+    from ..train.config import resolve_masks
     from ..train.folder import open_run_dir
 
     scene = load_scene(args.scene, args.split or "train", downscale=args.downscale,
                        upright="off" if args.no_upright else "auto")
+    _, scene = resolve_masks(args.masks, scene)  # the priors see what training sees: an object's photos composited
     if scene_has_priors(scene):
         print(f"[dars] using the priors in {Path(args.scene) / 'priors'}", file=sys.stderr)
         return None

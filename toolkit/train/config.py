@@ -328,6 +328,28 @@ def masks_border_share(scene: Scene, n: int = 5) -> float | None:
     return float(np.median(shares)) if kept else None
 
 
+def resolve_masks(masks: str, scene: Scene, log=None) -> tuple[str, Scene]:
+    """What the frames' masks mean (:attr:`TrainConfig.masks`): ``auto`` becomes ``alpha`` when they outline an
+    object (:func:`masks_border_share` under :data:`OBJECT_MASK_BORDER`), ``ignore`` when the photos have other
+    masks, else ``off``. Returns the mode and ``scene`` reading its masks that way (the priors and the trainer
+    both see the photos through it: an object's photos composited on the background)."""
+    if masks == "auto":
+        has = sum("mask" in f.extras for f in scene.frames)
+        share = masks_border_share(scene) if has else None
+        outline = share is not None and share < OBJECT_MASK_BORDER
+        masks = "alpha" if outline else "ignore" if has else "off"
+        if outline and log is not None:
+            log(f"[dars] masks: {has} of {len(scene)} photos have a mask_path and the masks outline an object (they "
+                f"keep {100 * share:.0f} % of the photos' borders, under {100 * OBJECT_MASK_BORDER:.0f} %): they are "
+                "the photos' alpha, an object on a plain background (--masks ignore: only leave their 0 pixels out)")
+        elif has and log is not None:
+            log(f"[dars] masks: {has} of {len(scene)} photos have a mask_path; its 0 pixels are left out of training "
+                "and scoring (--masks alpha: the masks are the photos' alpha; --masks off: not read)")
+    if masks in ("alpha", "off") and scene.masks != masks:
+        scene = replace(scene, masks=masks)
+    return masks, scene
+
+
 def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfig, Scene]:
     """Fill data-dependent settings; returns the config and the scene with its resolved box.
 
@@ -341,20 +363,8 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
       camera distance — ``next_pow2(4 · box extent / footprint)`` (twice that with contraction: the box spans half
       of each grid axis), clamped to [256, 2048].
     """
-    if cfg.masks == "auto":
-        has = sum("mask" in f.extras for f in scene.frames)
-        share = masks_border_share(scene) if has else None
-        outline = share is not None and share < OBJECT_MASK_BORDER
-        cfg = replace(cfg, masks="alpha" if outline else "ignore" if has else "off")
-        if outline and log is not None:
-            log(f"[dars] masks: {has} of {len(scene)} photos have a mask_path and the masks outline an object (they "
-                f"keep {100 * share:.0f} % of the photos' borders, under {100 * OBJECT_MASK_BORDER:.0f} %): they are "
-                "the photos' alpha, an object on a plain background (--masks ignore: only leave their 0 pixels out)")
-        elif has and log is not None:
-            log(f"[dars] masks: {has} of {len(scene)} photos have a mask_path; its 0 pixels are left out of training "
-                "and scoring (--masks alpha: the masks are the photos' alpha; --masks off: not read)")
-    if cfg.masks in ("alpha", "off") and scene.masks != cfg.masks:
-        scene = replace(scene, masks=cfg.masks)
+    masks, scene = resolve_masks(cfg.masks, scene, log)
+    cfg = replace(cfg, masks=masks)
     kind = cfg.scene_type
     if kind == "auto":
         kind = "object" if photos_have_transparency(scene) else "unbounded"
