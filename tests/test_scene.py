@@ -457,3 +457,9 @@ def test_large_jpegs_decode_at_the_downscale_directly(tmp_path):
     from toolkit.io import read_image
     with pytest.raises(ValueError, match="reduce must be 1 or one of"):
         read_image(tmp_path / "p.jpg", reduce=3)
+    sc = load_scene(tmp_path, "train", downscale=4, upright="off")
+    small = cv2.resize(cv2.imread(str(tmp_path / "p.jpg")), (120, 96))  # replaced after loading by another size
+    cv2.imwrite(str(tmp_path / "p.jpg"), small)
+    with pytest.raises(SceneError, match=r"frame 0 \('p.jpg'\): image is about 120x96 \(decoded at 1/4 of its size\) "
+                                         r"but the camera intrinsics say 128x96"):
+        sc.load_image(0)

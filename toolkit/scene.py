@@ -236,10 +236,10 @@ class Scene:
         if f.native_size is not None:
             nw, nh = f.native_size
             if img.shape[1] * reduced != nw or img.shape[0] * reduced != nh:
-                raise SceneError(
-                    f"{self._where(i)}: {what} is {img.shape[1] * reduced}x{img.shape[0] * reduced} but the camera "
-                    f"intrinsics say {nw}x{nh}; fix w/h in the transforms file or resize the image"
-                )
+                size = (f"{img.shape[1]}x{img.shape[0]}" if reduced == 1 else
+                        f"about {img.shape[1] * reduced}x{img.shape[0] * reduced} (decoded at 1/{reduced} of its size)")
+                raise SceneError(f"{self._where(i)}: {what} is {size} but the camera intrinsics say {nw}x{nh}; fix w/h "
+                                 "in the transforms file or resize the image")
         if f.distortion is not None and any(abs(c) > 0 for c in f.distortion):
             K = np.array(
                 [[float(self.cameras.fx[i]) * self.downscale, 0, float(self.cameras.cx[i]) * self.downscale],
