@@ -1,3 +1,4 @@
+import dataclasses
 import json
 import math
 import shutil
@@ -451,6 +452,15 @@ def test_large_jpegs_decode_at_the_downscale_directly(tmp_path):
         assert np.abs(alpha - ref_alpha).mean() < 0.02 and alpha.max() == 1.0 and alpha.min() == 0.0
         inside = ref_alpha > 0.99  # composited onto the background elsewhere
         assert np.abs(img[:3][:, inside] - ref[:, inside]).mean() < 0.01
+    meta_k1 = {**meta, "k1": 0.08, "k2": -0.05}  # a lens to undo: at half the reduction, then an area filter of 2
+    (tmp_path / "transforms_train.json").write_text(json.dumps(meta_k1))
+    for d, k in ((2, 1), (4, 2), (8, 4)):
+        sc = load_scene(tmp_path, "train", downscale=d, upright="off")
+        assert sc._jpeg_reduction(0) == k
+        whole = dataclasses.replace(sc)  # the same scene decoding its photo whole
+        object.__setattr__(whole, "_jpeg_reduction", lambda i, path=None: 1)
+        assert np.abs(sc.load_image(0).numpy() - whole.load_image(0).numpy()).mean() < 0.01
+    (tmp_path / "transforms_train.json").write_text(json.dumps(meta))
     assert load_scene(tmp_path, "train", downscale=3, upright="off")._jpeg_reduction(0) == 1
     assert load_scene(tmp_path, "train", downscale=6, upright="off")._jpeg_reduction(0) == 2
     assert load_scene(tmp_path, "train", downscale=6, upright="off").load_image(0).shape == (3, 16, 21)
