@@ -150,6 +150,8 @@ def _cv2():
 
 JPEG_REDUCTIONS = (8, 4, 2)
 """The factors libjpeg decodes a JPEG at directly (its scaled inverse DCT): ``read_image(..., reduce=k)``."""
+JPEG_SUFFIXES = (".jpg", ".jpeg")
+"""The files ``reduce`` applies to."""
 
 
 def read_image(path: str | os.PathLike, what: str = "image", reduce: int = 1) -> np.ndarray:
@@ -207,7 +209,7 @@ def _decode_flag(cv2, path: Path, reduce: int) -> int:
         return cv2.IMREAD_UNCHANGED
     if reduce not in JPEG_REDUCTIONS:
         raise ValueError(f"reduce must be 1 or one of {JPEG_REDUCTIONS}, got {reduce!r}")
-    if path.suffix.lower() not in (".jpg", ".jpeg"):
+    if path.suffix.lower() not in JPEG_SUFFIXES:
         return cv2.IMREAD_UNCHANGED
     return getattr(cv2, f"IMREAD_REDUCED_COLOR_{reduce}") | cv2.IMREAD_IGNORE_ORIENTATION
 

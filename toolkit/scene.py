@@ -39,7 +39,7 @@ import torch
 
 from ._checks import SceneError, check_rigid_pose
 from .cameras import Cameras, RayBundle, generate_rays, intersect_aabb, project_points
-from .io import JPEG_REDUCTIONS, read_image, read_map
+from .io import JPEG_REDUCTIONS, JPEG_SUFFIXES, read_image, read_map
 from .upright import PLANE_MAX_REPROJ_PX, plan_upright_rotation
 
 __all__ = [
@@ -107,6 +107,11 @@ class Frame:
     extras: dict[str, Path] = field(default_factory=dict)
     distortion: tuple[float, ...] | None = None
     native_size: tuple[int, int] | None = None
+
+    @property
+    def distorted(self) -> bool:
+        """True when the photo has lens distortion to undo on load (a non-zero coefficient)."""
+        return self.distortion is not None and any(abs(c) > 0 for c in self.distortion)
 
     @property
     def key(self) -> str:
@@ -223,12 +228,11 @@ class Scene:
         f = self.frames[i]
         path = f.image_path if path is None else path
         if (self.downscale == 1 or path is None or f.native_size is None
-                or path.suffix.lower() not in (".jpg", ".jpeg")):
+                or path.suffix.lower() not in JPEG_SUFFIXES):
             return 1
         k = next((k for k in JPEG_REDUCTIONS
                   if self.downscale % k == 0 and f.native_size[0] % k == 0 and f.native_size[1] % k == 0), 1)
-        distorted = f.distortion is not None and any(abs(c) > 0 for c in f.distortion)
-        return k // 2 or 1 if distorted and k == self.downscale else k
+        return k // 2 or 1 if f.distorted and k == self.downscale else k
 
     def _postprocess(self, i: int, img: np.ndarray, what: str, interp: str, reduced: int = 1) -> np.ndarray:
         """Undistort, downscale and size-check one decoded H-W-C map of frame ``i`` (decoded at 1/``reduced`` of
@@ -243,7 +247,7 @@ class Scene:
                         f"about {img.shape[1] * reduced}x{img.shape[0] * reduced} (decoded at 1/{reduced} of its size)")
                 raise SceneError(f"{self._where(i)}: {what} is {size} but the camera intrinsics say {nw}x{nh}; fix w/h "
                                  "in the transforms file or resize the image")
-        if f.distortion is not None and any(abs(c) > 0 for c in f.distortion):
+        if f.distorted:
             s = self.downscale / reduced  # the intrinsics of the decoded pixels (the coefficients have no unit)
             K = np.array(
                 [[float(self.cameras.fx[i]) * s, 0, float(self.cameras.cx[i]) * s],
