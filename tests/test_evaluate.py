@@ -90,6 +90,16 @@ def test_every_metric_computed_when_data_supports_it(full_eval, run_dir):
     assert sum(n_by.values()) == doc["details"]["pixels"]["albedo_mae"]
     assert sum(by[k] * n_by[k] for k in by) / sum(n_by.values()) == pytest.approx(doc["albedo_mae"], rel=1e-5)
     assert all(v > 0 for v in level.values())
+    # no ground truth: the normals against the rendered depth, per view as a direct computation gives it
+    from toolkit.evaluate import normal_depth_agreement
+    ang, _ = normal_depth_agreement(sc.cameras, 3, o.depth, o.normal, o.opacity)
+    v3 = doc["per_view"][3]["normal_vs_depth_deg"]
+    assert (v3 is None) if ang.numel() == 0 else v3 == pytest.approx(float(ang.mean()), abs=1e-3)
+    nvd = doc["details"]["normal_vs_depth"]
+    views = [r["normal_vs_depth_deg"] for r in doc["per_view"] if r["normal_vs_depth_deg"] is not None]
+    assert (nvd is None) == (not views)
+    if nvd is not None:
+        assert min(views) <= nvd["angle_mean_deg"] <= max(views) and 0.0 <= nvd["back_facing_share"] <= 1.0
 
 
 def test_view_consistency_patch_matches_independent_computation(full_eval, scene_gt):
@@ -165,6 +175,35 @@ def test_choose_patch_recovers_plane_point():
     assert choose_patch(cams, 0, depth, normal, opacity)[3] == [30, 2]
     with pytest.raises(MetricUnavailable, match="renders no surface"):
         choose_patch(cams, 0, depth, normal, torch.zeros(32, 32))
+
+
+def test_normal_depth_agreement_on_analytic_planes():
+    """The ground-truth-free normal check: a plane's own normal scores 0°, a normal turned about the view axis scores
+    its turn, an inward normal 180° and back-facing; the silhouette (non-opaque neighbours) is left out."""
+    from toolkit.evaluate import normal_depth_agreement
+    from toolkit.scene import generate_rays
+
+    c2w = torch.eye(4)
+    c2w[:3, 3] = torch.tensor([0.0, 0.0, 2.0])
+    cams = Cameras(c2w[None], torch.tensor([40.0]), torch.tensor([40.0]), torch.tensor([16.0]), torch.tensor([16.0]),
+                   torch.tensor([32]), torch.tensor([32]))
+    # a plane through the origin with normal m (tilted 30° about x), seen by a camera at z = 2 looking down -z
+    a = math.radians(30.0)
+    m = torch.tensor([0.0, math.sin(a), math.cos(a)])
+    rays = generate_rays(cams, [0])
+    t = -(rays.origins @ m) / (rays.directions @ m)
+    depth = (t * rays.z_scale).reshape(32, 32)
+    opacity = torch.ones(32, 32)
+    opacity[:, :4] = 0.0  # a silhouette: columns 0-3 empty, so interior columns up to 4 are dropped
+    ang, back = normal_depth_agreement(cams, 0, depth, m.expand(32, 32, 3), opacity)
+    assert ang.numel() == 30 * (30 - 4) and float(ang.max()) < 0.05 and not bool(back.any())
+    turned = torch.tensor([0.0, 0.0, 1.0])  # 30° off the plane's normal
+    ang, _ = normal_depth_agreement(cams, 0, depth, turned.expand(32, 32, 3), opacity)
+    assert float(ang.mean()) == pytest.approx(30.0, abs=0.05)
+    ang, back = normal_depth_agreement(cams, 0, depth, (-m).expand(32, 32, 3), opacity)
+    assert float(ang.min()) > 179.9 and bool(back.all())
+    ang, back = normal_depth_agreement(cams, 0, depth, m.expand(32, 32, 3), torch.zeros(32, 32))
+    assert ang.numel() == 0 and back.numel() == 0
 
 
 def test_training_sample_counts_follow_w(run_dir):

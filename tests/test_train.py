@@ -187,20 +187,24 @@ def test_cli_train_and_render(tiny, tmp_path, capsys):
 
 
 def test_cli_loss_options_are_recorded_and_checked_on_resume(tiny, tmp_path, capsys):
-    """--sparse-depth, --opacity-loss and --depth-normal reach the run's config; --resume with another value is
-    refused."""
+    """--sparse-depth, --opacity-loss, --depth-normal and --eikonal reach the run's config; --resume with another
+    value is refused."""
     from toolkit.cli import main
 
     run = tmp_path / "l"
     assert main(["train", str(tiny), "--out", str(run), "--steps", "2", "--batch-rays", "256", "--quiet",
-                 "--no-auto-priors", "--sparse-depth", "0.25", "--opacity-loss", "0.05", "--depth-normal", "0"]) == 0
+                 "--no-auto-priors", "--sparse-depth", "0.25", "--opacity-loss", "0.05", "--depth-normal", "0",
+                 "--eikonal", "0.2"]) == 0
     losses = json.load(open(run / "config.json"))["config"]["losses"]
     assert losses["sparse_depth"] == 0.25 and losses["opacity"] == 0.05 and losses["depth_normal"] == 0.0
+    assert losses["eikonal"] == 0.2 and losses["eikonal_step"] == 1 / 512  # the tiny scene is a room
     capsys.readouterr()
     assert main(["train", "--out", str(run), "--steps", "3", "--resume", "--sparse-depth", "0.5", "--quiet"]) == 2
     assert "--sparse-depth" in capsys.readouterr().err
     assert main(["train", "--out", str(run), "--steps", "3", "--resume", "--depth-normal", "0.3", "--quiet"]) == 2
     assert "--depth-normal 0.3 (the run's: 0.0)" in capsys.readouterr().err
+    assert main(["train", "--out", str(run), "--steps", "3", "--resume", "--eikonal", "0.1", "--quiet"]) == 2
+    assert "--eikonal 0.1 (the run's: 0.2)" in capsys.readouterr().err
 
 
 def test_cli_train_computes_its_priors_from_the_photos(tmp_path, capsys):
@@ -443,6 +447,34 @@ def test_room_geometry_losses_follow_the_scene_type(sample_scene_path):
                                                                                              ROOM_LOSSES["sparse_depth"])
     nerf, _ = resolve_config(make_config("fast", steps=1, baseline="nerf", scene_type="room"), scene)
     assert all(getattr(nerf.losses, k) == 0.0 for k in keys)
+
+
+def test_eikonal_follows_the_scene_type(sample_scene_path):
+    """L_eikonal left None: Table 1's 0.01 over 1/512 of the box in a room, 0.1 over 1/64 on an object; the paper
+    preset and the NeRF baseline keep 0.01 and 1/512 whatever the scene; a value the user set is kept; a run saved
+    before the step was an option loads with 1/512."""
+    import dataclasses
+
+    from toolkit.train import TrainConfig, resolve_config
+    from toolkit.train.config import EIKONAL
+
+    scene = load_scene(sample_scene_path, "train")
+    assert EIKONAL == {"unbounded": (0.01, 1 / 512), "object": (0.1, 1 / 64)}
+    assert (make_config("fast", steps=1).losses.eikonal, make_config("fast", steps=1).losses.eikonal_step) == (None, None)
+    got = {}
+    for name, cfg in (("room", make_config("fast", steps=1)), ("object", make_config("fast", steps=1, scene_type="object")),
+                      ("paper", make_config("paper", steps=1, scene_type="object")),
+                      ("nerf", make_config("fast", steps=1, baseline="nerf", scene_type="object"))):
+        r, _ = resolve_config(cfg, scene)
+        got[name] = (r.losses.eikonal, r.losses.eikonal_step)
+    assert got == {"room": (0.01, 1 / 512), "object": (0.1, 1 / 64), "paper": (0.01, 1 / 512), "nerf": (0.01, 1 / 512)}
+    cfg = make_config("fast", steps=1, scene_type="object")
+    cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, eikonal=0.0))
+    r, _ = resolve_config(cfg, scene)
+    assert (r.losses.eikonal, r.losses.eikonal_step) == (0.0, 1 / 64)
+    d = r.to_dict()
+    d["losses"].pop("eikonal_step")
+    assert TrainConfig.from_dict(d).losses.eikonal_step == 1 / 512
 
 
 def test_shading_follows_the_scene_type(sample_scene_path):

@@ -23,6 +23,9 @@ key                    definition (computed when ...)
                        fix albedo and light only up to a common scale, so this is the error light cannot explain) with
                        that ``albedo_scale`` (> 1: the albedo is too dark); ``metallic_mae`` on the same mask when the
                        split has GT ``metallic`` maps.
+(details)              ``details.normal_vs_depth``, on every run (no ground truth): the mean angle between the
+                       rendered normals and the normals of the rendered depth map, and the share facing away from the
+                       camera (:func:`normal_depth_agreement`); per view ``normal_vs_depth_deg``.
 ``env_light_l2``       ``||l_env - sh_gt||_2`` over the 27 SH coefficients (eq. 36): the run's global light vs the
                        scene's ``sh``. Needs GT SH and a ``pbr`` run (a standard NeRF has no light model).
 ``view_consistency``   eqs. 37-38: sample std over K = 10 uniformly spaced views (among the evaluated views in which
@@ -73,7 +76,8 @@ from .metrics import (MetricUnavailable, albedo_mae, albedo_mae_aligned, env_lig
 from .scene import SEMANTIC_CLASSES, UNLABELLED, Cameras, Scene, load_scene, photos_have_transparency
 
 __all__ = ["METRIC_KEYS", "JSON_SECTIONS", "EvalConfig", "EvalResult", "EvalFigures", "evaluate_run",
-           "training_info", "variant_of", "training_sample_counts", "choose_patch", "chamfer_to_reference"]
+           "training_info", "variant_of", "training_sample_counts", "choose_patch", "chamfer_to_reference",
+           "normal_depth_agreement"]
 
 METRIC_KEYS: tuple[str, ...] = ("psnr", "ssim", "flip", "lpips", "albedo_mae", "roughness_rmse", "env_light_l2",
                                 "view_consistency", "normal_mae", "miou")
@@ -570,6 +574,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     by_class: dict[str, dict[str, list[tuple[float, int]]]] = {"roughness": {}, "albedo": {}}
     albedo_sums: dict[str, torch.Tensor] = {}  # per GT class: sums of predicted and GT albedo, float64 [2, 3]
     geo_px: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = []  # |dz|, opacity, GT class (strided)
+    nd_px: list[tuple[float, float, int]] = []  # per view: mean normal-vs-depth angle, back-facing share, pixels
     sem_pred, sem_gt = [], []
     mat_rule = ""
     samples_mean: list[float] = []
@@ -658,6 +663,11 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
             lab = gt_lab.reshape(-1)[keep] if gt_lab is not None else None
             geo_px.append(((out["depth"].reshape(-1)[keep].cpu() - gt_z[keep]).abs(),
                            out["opacity"].reshape(-1)[keep].cpu(), lab))
+        if "normal" in out and "depth" in out:  # the normals against the rendered surface (no ground truth needed)
+            ang, back = normal_depth_agreement(scene.cameras, i, out["depth"], out["normal"], out["opacity"])
+            row["normal_vs_depth_deg"] = float(ang.mean()) if ang.numel() else None
+            if ang.numel():
+                nd_px.append((float(ang.mean()), float(back.float().mean()), int(ang.numel())))
         row["samples_per_ray"] = float(out["samples"].mean())
         samples_mean.append(row["samples_per_ray"])
         per_view.append(row)
@@ -743,6 +753,7 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
     details = {
         "object_psnr": sum(obj_vals) / len(obj_vals) if obj_vals else None,
         "geometry": _geometry_by_class(geo_px),
+        "normal_vs_depth": _normal_depth_summary(nd_px),
         "view_consistency": vc_detail,
         "miou_per_class": miou_per_class,
         "pixels": pixels,
@@ -765,6 +776,12 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
                                    "error is MAE x pixels / sum); albedo_level_by_class: the class's mean predicted "
                                    "over mean GT albedo, averaged over channels (above 1: too bright)",
             "semantics": "argmax of rendered logits; 255 where rendered opacity < 0.5",
+            "normal_vs_depth": "no ground truth: mean angle (degrees) between the rendered normal and the normal "
+                               "of the rendered depth map (central differences), over the pixels whose 3x3 "
+                               "neighbourhood is opaque (opacity >= 0.5), pooled over views; back_facing_share: "
+                               "the share of those pixels whose rendered normal faces away from the camera. Low "
+                               "angles mean the normals (shading, relighting, the GLB's normal map) follow the "
+                               "geometry; 90 is no relation",
             "geometry": "on pixels with a ground-truth depth: median |rendered depth - GT depth| (metres, along the "
                         "camera axis) and mean rendered opacity, over all of them and per ground-truth class; "
                         "opacity well below 1 on a class means the learned background shows through it",
@@ -802,6 +819,15 @@ def evaluate_run(run, split: str = "test", cfg: EvalConfig = EvalConfig(), log: 
                       training=training_info(run), info=info, figures=figures)
 
 
+def _normal_depth_summary(px: list[tuple[float, float, int]]) -> dict | None:
+    """``details.normal_vs_depth``: the per-view figures of :func:`normal_depth_agreement`, pooled by pixels."""
+    n = sum(p[2] for p in px)
+    if not n:
+        return None
+    return {"angle_mean_deg": sum(a * k for a, _, k in px) / n, "back_facing_share": sum(b * k for _, b, k in px) / n,
+            "pixels": n}
+
+
 def _geometry_by_class(px: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]]) -> dict | None:
     """``details.geometry``: median depth error and mean opacity on GT-depth pixels, overall and per GT class."""
     if not px:
@@ -819,6 +845,41 @@ def _geometry_by_class(px: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor |
         res["by_class"] = {name: {**stats(lab == c), "share": float((lab == c).float().mean())}
                            for c, name in enumerate(SEMANTIC_CLASSES) if bool((lab == c).any())}
     return res
+
+
+def normal_depth_agreement(cameras: Cameras, index: int, depth: torch.Tensor, normal: torch.Tensor,
+                           opacity: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per pixel, the angle (degrees) between the rendered normal and the normal of the rendered depth map, and
+    whether the rendered normal faces away from the camera: a check of the normals that needs no ground truth.
+
+    The depth normal is :func:`toolkit.losses.depth_normals` of the rendered surface points (central differences
+    over ±1 pixel, turned toward the camera). Only pixels whose 3 x 3 neighbourhood is all opaque (rendered opacity
+    ≥ 0.5) count, so silhouettes, where the depth jumps, do not.
+
+    Args:
+        cameras: the evaluated split's cameras; ``index`` the view.
+        depth, opacity: float [H, W] rendered depth (along the camera axis) and opacity.
+        normal: float [H, W, 3] rendered unit world normals.
+
+    Returns:
+        (angles float [N], back-facing bool [N]) over the N counted pixels (N may be 0).
+    """
+    from .losses import depth_normals
+    from .scene import generate_rays
+
+    h, w = depth.shape
+    rays = generate_rays(cameras.to("cpu"), [index])
+    d = rays.directions.reshape(h, w, 3).float()
+    t = depth.float() / rays.z_scale.reshape(h, w).float()
+    pts = rays.origins.reshape(h, w, 3).float() + d * t[..., None]
+    nd = depth_normals(pts, d, 1)
+    solid = (opacity >= 0.5).float()[None, None]
+    solid = (-torch.nn.functional.max_pool2d(-solid, 3, stride=1))[0, 0] > 0.5  # [H-2, W-2]: all 9 opaque
+    ok = solid & (nd.square().sum(-1) > 0.5) & torch.isfinite(depth[1:-1, 1:-1])
+    n = torch.nn.functional.normalize(normal[1:-1, 1:-1].float(), dim=-1, eps=1e-6)
+    cos = (n * nd).sum(-1).clamp(-1.0, 1.0)
+    back = (n * d[1:-1, 1:-1]).sum(-1) > 0
+    return torch.rad2deg(torch.arccos(cos[ok])), back[ok]
 
 
 def _display_maps(out: dict[str, torch.Tensor], srgb: bool) -> dict[str, np.ndarray]:

@@ -61,9 +61,15 @@ class LossWeights:
     ssim: float = 0.2
     psnr: float = 0.1
     mat: float = 0.5
-    eikonal: float = 0.01
+    eikonal: float | None = None
+    """L_eikonal's weight (:func:`normal_consistency_loss`: the normal head follows −∇σ). None = by scene type
+    (:data:`toolkit.train.config.EIKONAL`): Table 1's 0.01 for a room, 0.1 for an object, whose normals nothing
+    else ties to its shape (README, "Normals that follow an object")."""
     eikonal_start: int = 2000
     """Step after which L_eikonal is active (Table 1: 2000)."""
+    eikonal_step: float | None = None
+    """The central-difference step of ∇σ in L_eikonal, as a fraction of the scene box's mean edge. None = by scene
+    type: 1/512 for a room, 1/64 for an object (at 1/512 an object's −∇σ follows its texture, not its shape)."""
     orientation: float | None = None
     """Ours (Ref-NeRF's orientation loss): penalises normals that face away from the camera. None = by scene type:
     1.0 for a room (``toolkit.train.config.ROOM_LOSSES``), 0.1 for an object (``OBJECT_LOSSES``)."""

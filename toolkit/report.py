@@ -388,6 +388,11 @@ def _eval_markdown(doc: dict, written: dict[str, Path]) -> str:
     if det.get("object_psnr") is not None:
         L += [f"The object alone (the pixels whose alpha is at least 0.5; PSNR above also counts the plain "
               f"background): **PSNR {det['object_psnr']:.2f} dB**.", ""]
+    nvd = det.get("normal_vs_depth")
+    if nvd:
+        L += [f"Normals against the rendered depth (no ground truth needed; 0° = the normals follow the surface, "
+              f"90° = no relation): **{nvd['angle_mean_deg']:.1f}°** on average over {nvd['pixels']} opaque pixels, "
+              f"{100 * nvd['back_facing_share']:.1f} % of them facing away from the camera.", ""]
     if doc["unavailable"]:
         L += ["Unavailable metrics (null in the JSON):", ""]
         L += [f"- **{k}**: {r}" for k, r in doc["unavailable"].items()]

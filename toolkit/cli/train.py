@@ -74,6 +74,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--depth-normal", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the depth-normal loss: the rendered normal follows the normal of the rendered "
                         "depth map (default: 0.5 for a room, 0 for an object; 0 = off)")
+    q.add_argument("--eikonal", type=NONNEGATIVE, default=None, metavar="W",
+                   help="weight of L_eikonal: the normal head follows the density's gradient (default: 0.01 for a "
+                        "room, 0.1 for an object, taken over 1/512 and 1/64 of the box; 0 = off)")
     q.add_argument("--orientation", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the orientation loss (Ref-NeRF): normals may not face away from the camera "
                         "(default: 1.0 for a room, 0.1 for an object; 0 = off)")
@@ -162,7 +165,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 _LOSS_OPTIONS = (("opacity-loss", "opacity_loss", "opacity"), ("sparse-depth", "sparse_depth", "sparse_depth"),
                  ("depth-normal", "depth_normal", "depth_normal"), ("planar-loss", "planar_loss", "planar"),
                  ("layout-depth", "layout_depth", "layout_depth"), ("layout-normal", "layout_normal", "layout_normal"),
-                 ("orientation", "orientation", "orientation"), ("albedo-smooth", "albedo_smooth", "albedo_smooth"))
+                 ("orientation", "orientation", "orientation"), ("albedo-smooth", "albedo_smooth", "albedo_smooth"),
+                 ("eikonal", "eikonal", "eikonal"))
 """Loss-weight options of ``dars train``: (flag, argparse attribute, ``LossWeights`` field); None = by scene type."""
 
 _RESUME_OPTIONS = (

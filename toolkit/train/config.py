@@ -22,7 +22,7 @@ from ..sampling import SamplerConfig
 from ..scene import Scene, photos_have_transparency
 
 __all__ = ["TrainConfig", "PRESETS", "make_config", "resolve_config", "resolve_scene_box", "SHELL_FADE", "ROOM_LOSSES",
-           "OBJECT_LOSSES", "photos_have_transparency"]
+           "OBJECT_LOSSES", "EIKONAL", "photos_have_transparency"]
 
 
 @dataclass(frozen=True)
@@ -200,6 +200,7 @@ class TrainConfig:
             # a room term a run was saved without did not exist when it trained: off, not today's room default
             # (which --resume would otherwise switch on partway through the run)
             losses.setdefault(k, 0.0)
+        losses.setdefault("eikonal_step", EIKONAL["unbounded"][1])  # runs saved before the step was an option
         return cls(field=FieldConfig(**fd), sampler=SamplerConfig(**samplers["sampler"]),
                    render_sampler=SamplerConfig(**samplers["render_sampler"]), losses=LossWeights(**losses),
                    snapshot_minutes=tuple(d.pop("snapshot_minutes", ())), **d)
@@ -233,7 +234,7 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
             sampler=SamplerConfig(n_coarse=64, n_fine=8),
             render_sampler=SamplerConfig(n_coarse=128, n_fine=8, perturb=False),
             batch_rays=1024, ssim_patches=1, lr_net=5e-4, lr_light=5e-3, occupancy_resolution=128,
-            losses=LossWeights(eikonal_start=2000),
+            losses=LossWeights(eikonal=0.01, eikonal_start=2000, eikonal_step=EIKONAL["unbounded"][1]),
         )
     else:
         cfg = TrainConfig(
@@ -256,7 +257,8 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
         overrides.setdefault("fixed_light", True)
         overrides.setdefault("scene_type", "object")  # no room prior either: a plain transparent start
         overrides.setdefault("deferred", False)  # NeRF's view-dependent colour at every sample
-        cfg = replace(cfg, losses=replace(cfg.losses, **{k: 0.0 for k in ROOM_LOSSES}))  # none of our additions
+        cfg = replace(cfg, losses=replace(cfg.losses, **{k: 0.0 for k in ROOM_LOSSES},  # none of our additions
+                                          eikonal=0.01, eikonal_step=EIKONAL["unbounded"][1]))
     cfg = replace(cfg, sampler=replace(cfg.sampler, dars=dars), render_sampler=replace(cfg.render_sampler, dars=dars))
     if mat_loss is False:
         cfg = replace(cfg, losses=replace(cfg.losses, mat=0.0))
@@ -272,6 +274,13 @@ ROOM_LOSSES = {"sparse_depth": 0.1, "opacity": 0.1, "depth_normal": 0.5, "layout
 geometry terms measured on the validation galleries (README, "Geometry of a room", "A room box from the photos" and
 "Normals that face the camera"; the albedo prior: "Albedo that does not follow the light"). An object on a transparent background gets :data:`OBJECT_LOSSES`' weight where it
 has one, else 0 (the opacity loss would fill its background; the others are not measured there)."""
+
+EIKONAL = {"unbounded": (0.01, 1.0 / 512.0), "object": (0.1, 1.0 / 64.0)}
+"""(weight, central-difference step as a fraction of the box's mean edge) of L_eikonal by scene type, where the
+config leaves them None. A room keeps Table 1's 0.01 at the step it always had. An object's normals are otherwise
+tied to nothing (its photometric loss is met by the per-point light residual whatever the normals), and they came
+out one direction across the whole object; 10x the weight on −∇σ taken over 8x the step made them follow the
+Ethiopian head's shape (README, "Normals that follow an object")."""
 
 OBJECT_LOSSES = {"orientation": 0.1}
 """Loss weights left None that an object gets (not 0): the orientation loss at Ref-NeRF's weight, as before rooms
@@ -357,7 +366,8 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
       :data:`OBJECT_MASK_BORDER`), ``ignore`` when they have other masks, else ``off``);
     * ``scene_type`` (``auto`` → ``unbounded`` or ``object``) and with it the field's contraction;
     * ``deferred`` left None: True (shading once per ray) for an unbounded scene, False for an object;
-    * the loss weights left None (:data:`ROOM_LOSSES` for a room, :data:`OBJECT_LOSSES` or 0 for an object);
+    * the loss weights left None (:data:`ROOM_LOSSES` for a room, :data:`OBJECT_LOSSES` or 0 for an object;
+      L_eikonal's weight and step by :data:`EIKONAL`);
     * the scene box (:func:`resolve_scene_box`);
     * with ``auto_resolution`` the hash grid's finest level resolves a quarter of the pixel footprint at the median
       camera distance — ``next_pow2(4 · box extent / footprint)`` (twice that with contraction: the box spans half
@@ -379,10 +389,12 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
                                       else "at every sample (an object; --shade rays to shade once per ray)"))
     auto = {k: (v if kind == "unbounded" else OBJECT_LOSSES.get(k, 0.0)) for k, v in ROOM_LOSSES.items()
             if getattr(cfg.losses, k) is None}
+    eik_w, eik_step = EIKONAL["unbounded" if kind == "unbounded" else "object"]
+    auto.update({k: v for k, v in (("eikonal", eik_w), ("eikonal_step", eik_step)) if getattr(cfg.losses, k) is None})
     if auto:
         cfg = replace(cfg, losses=replace(cfg.losses, **auto))
         if log is not None and kind == "unbounded":
-            log("[dars] room geometry losses: " + ", ".join(f"{k} {v:g}" for k, v in auto.items()))
+            log("[dars] room geometry losses: " + ", ".join(f"{k} {v:g}" for k, v in auto.items() if k in ROOM_LOSSES))
     if (cfg.losses.depth_normal or 0.0) > 0 and cfg.ssim_patches == 0:
         if "depth_normal" not in auto:
             raise ConfigError(f"depth_normal={cfg.losses.depth_normal:g} is computed on the step's image patches, "

@@ -483,7 +483,7 @@ def train_step(state: TrainState, data: TrainData) -> dict:
             sel = torch.multinomial(out.weights.detach().float() + 1e-8, m, replacement=False, generator=state.generator
                                     if out.weights.device.type == "cpu" else None)
             ext = float((data.scene.aabb[1] - data.scene.aabb[0]).mean())
-            grad = _density_gradient(state.field, out.sample_points[sel].detach(), ext / 512.0)
+            grad = _density_gradient(state.field, out.sample_points[sel].detach(), ext * lw.eikonal_step)
             if out.deferred:
                 n_pred = nn.functional.normalize(state.field.normal_head(out.sample_features[sel]), dim=-1, eps=1e-6)
             else:
