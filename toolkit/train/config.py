@@ -234,7 +234,8 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
             sampler=SamplerConfig(n_coarse=64, n_fine=8),
             render_sampler=SamplerConfig(n_coarse=128, n_fine=8, perturb=False),
             batch_rays=1024, ssim_patches=1, lr_net=5e-4, lr_light=5e-3, occupancy_resolution=128,
-            losses=LossWeights(eikonal=0.01, eikonal_start=2000, eikonal_step=EIKONAL["unbounded"][1]),
+            losses=LossWeights(eikonal=EIKONAL["unbounded"][0], eikonal_step=EIKONAL["unbounded"][1],
+                               eikonal_start=2000),
         )
     else:
         cfg = TrainConfig(
@@ -258,7 +259,7 @@ def make_config(preset: str = "fast", **overrides: Any) -> TrainConfig:
         overrides.setdefault("scene_type", "object")  # no room prior either: a plain transparent start
         overrides.setdefault("deferred", False)  # NeRF's view-dependent colour at every sample
         cfg = replace(cfg, losses=replace(cfg.losses, **{k: 0.0 for k in ROOM_LOSSES},  # none of our additions
-                                          eikonal=0.01, eikonal_step=EIKONAL["unbounded"][1]))
+                                          eikonal=EIKONAL["unbounded"][0], eikonal_step=EIKONAL["unbounded"][1]))
     cfg = replace(cfg, sampler=replace(cfg.sampler, dars=dars), render_sampler=replace(cfg.render_sampler, dars=dars))
     if mat_loss is False:
         cfg = replace(cfg, losses=replace(cfg.losses, mat=0.0))
@@ -389,8 +390,7 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
                                       else "at every sample (an object; --shade rays to shade once per ray)"))
     auto = {k: (v if kind == "unbounded" else OBJECT_LOSSES.get(k, 0.0)) for k, v in ROOM_LOSSES.items()
             if getattr(cfg.losses, k) is None}
-    eik_w, eik_step = EIKONAL["unbounded" if kind == "unbounded" else "object"]
-    auto.update({k: v for k, v in (("eikonal", eik_w), ("eikonal_step", eik_step)) if getattr(cfg.losses, k) is None})
+    auto.update({k: v for k, v in zip(("eikonal", "eikonal_step"), EIKONAL[kind]) if getattr(cfg.losses, k) is None})
     if auto:
         cfg = replace(cfg, losses=replace(cfg.losses, **auto))
         if log is not None and kind == "unbounded":
