@@ -12,6 +12,9 @@ Cases (``--case``, default ``all``):
 * ``galleries`` — every held-out validation gallery (``samples/galleries.py``: rendered on first use, cached), photos
   and poses only: test PSNR, albedo MAE, normal MAE, mIoU, the exported GLB's median depth error on the test views
   and its moderngl preview PSNR beside the field's; per gallery, mean and worst.
+* ``objects`` — object captures (``samples/render_object.py``: spot, bob, the bunny and the armadillo under an HDR
+  probe, RGBA photos with ground-truth normals and albedo; rendered on first use, cached), ``--steps`` (default 2000):
+  test PSNR, normal MAE, the normals' angle to the rendered depth's, albedo MAE; per object, mean and worst.
 * ``throughput`` — training and rendering rays/s and peak memory for ``mlp`` vs ``grid`` fields and DARS vs uniform
   sampling, on the sample, in one run (ratios against grid + uniform).
 
@@ -282,6 +285,20 @@ def _assets_depth_and_preview(run_dir: Path, asset_dirs: dict[str, Path], thread
     return res
 
 
+def _with_mean_and_worst(rows: dict[str, dict], keys: list[str], worse_high: set[str]) -> list[list]:
+    """Table rows: one per entry of ``rows`` (its name, then ``keys``), then the mean and the worst of each key (the
+    largest for ``worse_high`` keys, else the smallest), over the entries that have it."""
+    table = [[name] + [r.get(k) for k in keys] for name, r in rows.items()]
+
+    def agg(fn, k):
+        vals = [r[k] for r in rows.values() if r.get(k) is not None]
+        return fn(vals) if vals else None
+
+    table.append(["mean"] + [agg(lambda v: sum(v) / len(v), k) for k in keys])
+    table.append(["worst"] + [agg(max if k in worse_high else min, k) for k in keys])
+    return table
+
+
 def case_galleries(seeds: list[int], minutes: float, steps: int, threads: int, out_dir: Path, train_seed: int,
                    extra: list[str], export_only: bool = False, export_extra: list[str] | None = None) -> dict:
     """Every validation gallery (photos + poses only: no box, no labels, no ground-truth light): train, evaluate,
@@ -330,30 +347,60 @@ def case_galleries(seeds: list[int], minutes: float, steps: int, threads: int, o
     keys = ["psnr", "albedo_mae", "albedo_mae_aligned", "metallic_mae", "normal_mae", "depth_error_median_m",
             "preview_psnr", "preview_psnr_trilinear", "field_psnr", "miou", "steps"]
     worse_high = {"albedo_mae", "albedo_mae_aligned", "metallic_mae", "normal_mae", "depth_error_median_m"}
-    table = [[f"seed {s}"] + [r.get(k) for k in keys] for s, r in rows.items()]
-
-    def agg(fn, k):
-        vals = [r[k] for r in rows.values() if r.get(k) is not None]
-        return fn(vals) if vals else None
-
-    table.append(["mean"] + [agg(lambda v: sum(v) / len(v), k) for k in keys])
-    table.append(["worst"] + [agg(max if k in worse_high else min, k) for k in keys])
+    table = _with_mean_and_worst({f"seed {s}": r for s, r in rows.items()}, keys, worse_high)
     print(_table(f"[galleries] {len(rows)} validation galleries, fast preset, "
                  f"{'%d steps' % steps if steps else '%g min' % minutes}, {threads} threads, train seed {train_seed} "
                  "(photos + poses only)", ["gallery"] + keys, table))
     return rows
 
 
+def case_objects(objects: list[tuple[str, int]], steps: int, threads: int, out_dir: Path, train_seed: int,
+                 extra: list[str]) -> dict:
+    """Every object capture of ``samples/render_object.py`` (a reference mesh under an HDR probe, RGBA photos;
+    rendered on first use, cached): train for ``steps``, evaluate on the test views; print each object's PSNR,
+    normal MAE (against the ground truth), the normals' angle to the rendered depth's, albedo MAE (raw and
+    scale-aligned), then the mean and the worst."""
+    sys.path.insert(0, str(ROOT / "samples"))
+    from render_object import ensure_object
+
+    from toolkit.evaluate import EvalConfig, evaluate_run
+    from toolkit.train import load_run
+
+    rows = {}
+    for mesh, seed in objects:
+        scene = ensure_object(mesh, seed)
+        name = f"{mesh}_s{seed}"
+        run = out_dir / "objects" / name / "run"
+        info = _train(str(scene), run, 0, "", threads, ["--seed", str(train_seed), "--steps", str(steps), *extra])
+        res = evaluate_run(load_run(run), "test", EvalConfig())
+        m, nd = res.metrics, res.details.get("normal_vs_depth") or {}
+        rows[name] = {"steps": info["steps"], "train_wall_s": info["wall_s"], "psnr": m.get("psnr"), "ssim": m.get("ssim"),
+                      "normal_mae": m.get("normal_mae"), "normal_vs_depth_deg": nd.get("angle_mean_deg"),
+                      "back_facing_share": nd.get("back_facing_share"), "albedo_mae": m.get("albedo_mae"),
+                      "albedo_mae_aligned": res.details["materials"]["albedo_mae_aligned"]}
+        print(f"[objects] {name}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                               for k, v in rows[name].items()), flush=True)
+    keys = ["psnr", "ssim", "normal_mae", "normal_vs_depth_deg", "back_facing_share", "albedo_mae", "albedo_mae_aligned", "steps"]
+    worse_high = {"normal_mae", "normal_vs_depth_deg", "back_facing_share", "albedo_mae", "albedo_mae_aligned"}
+    table = _with_mean_and_worst(rows, keys, worse_high)
+    print(_table(f"[objects] {len(rows)} object captures, {steps} steps, {threads} threads, train seed {train_seed}"
+                 f"{' ' + ' '.join(extra) if extra else ''} (photos + poses only)", ["object"] + keys, table))
+    return rows
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--case", default="all", choices=["all", "sample", "lego", "tiny", "throughput", "galleries"])
+    ap.add_argument("--case", default="all", choices=["all", "sample", "lego", "tiny", "throughput", "galleries", "objects"])
+    ap.add_argument("--objects", default="all",
+                    help="objects case: 'all' (every mesh at seed 0) or MESH:SEED,... (e.g. spot:0,bunny:1)")
     ap.add_argument("--galleries", default="all",
                     help="galleries case: 'all' validation galleries, the first N (a quick look; report all), or "
                          "validation seeds, comma-separated (e.g. 1000001,)")
     ap.add_argument("--minutes", type=float, default=10.0, help="galleries case: training budget per gallery")
-    ap.add_argument("--steps", type=int, default=0, help="galleries case: a step budget instead of --minutes")
-    ap.add_argument("--seed", type=int, default=0, help="galleries case: training seed")
-    ap.add_argument("--train-args", default="", help="galleries case: extra `dars train` arguments (quoted)")
+    ap.add_argument("--steps", type=int, default=0,
+                    help="galleries case: a step budget instead of --minutes; objects case: the step budget (default 2000)")
+    ap.add_argument("--seed", type=int, default=0, help="galleries and objects cases: training seed")
+    ap.add_argument("--train-args", default="", help="galleries and objects cases: extra `dars train` arguments (quoted)")
     ap.add_argument("--export-only", action="store_true",
                     help="galleries case: keep the runs already in OUT/galleries and only export and score the GLBs")
     ap.add_argument("--export-args", default="", help="galleries case: extra `dars export-asset` arguments (quoted)")
@@ -410,6 +457,20 @@ def main() -> int:
                 seeds = list(VALIDATION_SEEDS)[:int(args.galleries)]
             results[c] = case_galleries(seeds, args.minutes, args.steps, args.threads, out, args.seed,
                                         args.train_args.split(), args.export_only, args.export_args.split())
+        elif c == "objects":
+            sys.path.insert(0, str(ROOT / "samples"))
+            from render_object import MESHES, VALIDATION
+
+            if args.objects == "all":
+                objects = list(VALIDATION)
+            else:
+                objects = []
+                for item in (v for v in args.objects.split(",") if v):
+                    mesh, _, seed = item.partition(":")
+                    if mesh not in MESHES or not seed.isdigit():
+                        ap.error(f"--objects {item!r}: expected MESH:SEED with MESH one of {sorted(MESHES)}")
+                    objects.append((mesh, int(seed)))
+            results[c] = case_objects(objects, args.steps or 2000, args.threads, out, args.seed, args.train_args.split())
         elif c == "throughput":
             results[c] = case_throughput(args.threads, out)
     out.mkdir(parents=True, exist_ok=True)

@@ -52,16 +52,18 @@ from procedural import (  # noqa: E402
 )
 
 LIBLLVM19 = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
-def _envmaps_dir() -> Path:
-    if os.environ.get("DARS_ENVMAPS"):
-        return Path(os.environ["DARS_ENVMAPS"])
+def shared_data_dir(name: str, variable: str) -> Path:
+    """A folder of the shared external data, read in place: ``$<variable>``, ``$DARS_SHARED_DATA/<name>``,
+    ``../shared/data/<name>`` beside the clone, else ``/work/shared/data/<name>``."""
+    if os.environ.get(variable):
+        return Path(os.environ[variable])
     if os.environ.get("DARS_SHARED_DATA"):
-        return Path(os.environ["DARS_SHARED_DATA"]) / "envmaps"
-    beside = _REPO.parent / "shared" / "data" / "envmaps"
-    return beside if beside.is_dir() else Path("/work/shared/data/envmaps")
+        return Path(os.environ["DARS_SHARED_DATA"]) / name
+    beside = _REPO.parent / "shared" / "data" / name
+    return beside if beside.is_dir() else Path("/work/shared/data") / name
 
 
-ENVMAPS = _envmaps_dir()
+ENVMAPS = shared_data_dir("envmaps", "DARS_ENVMAPS")
 """Where the HDR probes are read from (never copied into the repo): ``$DARS_ENVMAPS``, ``$DARS_SHARED_DATA/envmaps``,
 ``../shared/data/envmaps`` beside the clone, else ``/work/shared/data/envmaps``."""
 DEFAULT_ENV = str(ENVMAPS / "probulator_pisa_256x128.hdr")

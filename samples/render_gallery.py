@@ -474,8 +474,9 @@ def write_split(out_dir: Path, split: str, res: dict[str, Any], cameras: np.ndar
         stem = f"{split}/r_{i:03d}"
         rad = res["radiance"][i]
         srgb = linear_to_srgb(np.clip(rad, 0, 1))
-        if image_format == "rgba":
-            srgb = np.concatenate([srgb, np.ones_like(srgb[..., :1])], -1)  # alpha 255 everywhere
+        if image_format == "rgba":  # alpha: res["alpha"] (straight colour) where given, else 255 everywhere
+            alpha = res["alpha"][i][..., None] if "alpha" in res else np.ones_like(srgb[..., :1])
+            srgb = np.concatenate([srgb, alpha], -1)
         write_png(out_dir / f"{stem}.png", srgb)
         frame: dict[str, Any] = {"file_path": f"{stem}.png", "transform_matrix": cameras[i].tolist()}
         if write_hdr_files:

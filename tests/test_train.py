@@ -187,17 +187,17 @@ def test_cli_train_and_render(tiny, tmp_path, capsys):
 
 
 def test_cli_loss_options_are_recorded_and_checked_on_resume(tiny, tmp_path, capsys):
-    """--sparse-depth, --opacity-loss, --depth-normal and --eikonal reach the run's config; --resume with another
+    """--sparse-depth, --opacity-loss, --depth-normal, --eikonal and --eikonal-step reach the run's config; --resume with another
     value is refused."""
     from toolkit.cli import main
 
     run = tmp_path / "l"
     assert main(["train", str(tiny), "--out", str(run), "--steps", "2", "--batch-rays", "256", "--quiet",
                  "--no-auto-priors", "--sparse-depth", "0.25", "--opacity-loss", "0.05", "--depth-normal", "0",
-                 "--eikonal", "0.2"]) == 0
+                 "--eikonal", "0.2", "--eikonal-step", "0.01"]) == 0
     losses = json.load(open(run / "config.json"))["config"]["losses"]
     assert losses["sparse_depth"] == 0.25 and losses["opacity"] == 0.05 and losses["depth_normal"] == 0.0
-    assert losses["eikonal"] == 0.2 and losses["eikonal_step"] == 1 / 512  # the tiny scene is a room
+    assert losses["eikonal"] == 0.2 and losses["eikonal_step"] == 0.01
     capsys.readouterr()
     assert main(["train", "--out", str(run), "--steps", "3", "--resume", "--sparse-depth", "0.5", "--quiet"]) == 2
     assert "--sparse-depth" in capsys.readouterr().err
@@ -205,6 +205,11 @@ def test_cli_loss_options_are_recorded_and_checked_on_resume(tiny, tmp_path, cap
     assert "--depth-normal 0.3 (the run's: 0.0)" in capsys.readouterr().err
     assert main(["train", "--out", str(run), "--steps", "3", "--resume", "--eikonal", "0.1", "--quiet"]) == 2
     assert "--eikonal 0.1 (the run's: 0.2)" in capsys.readouterr().err
+    assert main(["train", "--out", str(run), "--steps", "3", "--resume", "--eikonal-step", "0.02", "--quiet"]) == 2
+    assert "--eikonal-step 0.02 (the run's: 0.01)" in capsys.readouterr().err
+    for bad, why in (("0", "must be > 0"), ("1.5", "must be ≤ 1")):
+        assert main(["train", "--out", str(run), "--steps", "3", "--eikonal-step", bad, "--quiet"]) == 2
+        assert f"argument --eikonal-step: {why}, got {bad}" in capsys.readouterr().err
 
 
 def test_cli_train_computes_its_priors_from_the_photos(tmp_path, capsys):

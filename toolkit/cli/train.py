@@ -77,6 +77,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--eikonal", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of L_eikonal: the normal head follows the density's gradient (default: 0.01 for a "
                         "room, 0.1 for an object, taken over 1/512 and 1/64 of the box; 0 = off)")
+    q.add_argument("--eikonal-step", type=number(float, above=0, max=1), default=None, metavar="F",
+                   help="central-difference step of L_eikonal's density gradient, as a fraction of the box's mean "
+                        "edge (default: 1/512 for a room, 1/64 for an object; a larger step follows the shape, a smaller "
+                        "one the texture)")
     q.add_argument("--orientation", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the orientation loss (Ref-NeRF): normals may not face away from the camera "
                         "(default: 1.0 for a room, 0.1 for an object; 0 = off)")
@@ -166,7 +170,7 @@ _LOSS_OPTIONS = (("opacity-loss", "opacity_loss", "opacity"), ("sparse-depth", "
                  ("depth-normal", "depth_normal", "depth_normal"), ("planar-loss", "planar_loss", "planar"),
                  ("layout-depth", "layout_depth", "layout_depth"), ("layout-normal", "layout_normal", "layout_normal"),
                  ("orientation", "orientation", "orientation"), ("albedo-smooth", "albedo_smooth", "albedo_smooth"),
-                 ("eikonal", "eikonal", "eikonal"))
+                 ("eikonal", "eikonal", "eikonal"), ("eikonal-step", "eikonal_step", "eikonal_step"))
 """Loss-weight options of ``dars train``: (flag, argparse attribute, ``LossWeights`` field); None = by scene type."""
 
 _RESUME_OPTIONS = (
