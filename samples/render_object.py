@@ -7,7 +7,7 @@ ground truth as a gallery (depth, world normals, albedo, roughness, metallic, la
 ``gallery_scene.GT_RULES``), so an object's normals and albedo can be scored, not just its photos.
 
 * **Shape**: the mesh, turned from its file's +y up to our +z up, centred, scaled to a bounding sphere of radius 1
-  (``--radius``), turned by a random yaw.
+  (``ObjectOptions.radius``), turned by a random yaw.
 * **Material**: Mitsuba's ``principled`` BSDF. Spot and bob carry their own texture as ``base_color``; the bunny and
   the armadillo get a plain colour drawn from the seed. Roughness is drawn in [0.25, 0.8]; a quarter of the seeds
   make the object metal (metallic 1, the label's metal mask set).
