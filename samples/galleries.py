@@ -53,12 +53,17 @@ PRIOR_TRAIN_SEEDS = range(0, 1_000_000)
 """Training galleries for the networks; disjoint from :data:`VALIDATION_SEEDS`."""
 
 
+def dars_cache() -> Path:
+    """The render cache's base: ``$DARS_CACHE``, else ``~/.cache/dars``."""
+    base = os.environ.get("DARS_CACHE")
+    return Path(base).expanduser() if base else Path.home() / ".cache" / "dars"
+
+
 def cache_root(root: str | Path | None = None) -> Path:
     """``root``, else ``$DARS_CACHE/galleries``, else ``~/.cache/dars/galleries``."""
     if root is not None:
         return Path(root).expanduser()
-    base = os.environ.get("DARS_CACHE")
-    return (Path(base).expanduser() if base else Path.home() / ".cache" / "dars") / "galleries"
+    return dars_cache() / "galleries"
 
 
 def cached_scenes(profile: str = "validation", root: str | Path | None = None) -> list[str]:
@@ -141,19 +146,34 @@ def ensure_gallery(seed: int, profile: str = "validation", root: str | Path | No
     with _lock(final.parent / f".lock-seed_{int(seed)}"):
         if not force and is_cached(seed, profile, root):
             return final
-        tmp = final.parent / f".tmp-seed_{int(seed)}-{os.getpid()}"
-        shutil.rmtree(tmp, ignore_errors=True)
         t0 = time.time()
-        summary = rg.render_gallery(pg.random_gallery(int(seed), wall_patterns=opts.wall_patterns), tmp, opts)
-        stamp = {"hash": want, "seed": int(seed), "profile": profile, "generator": pg.GENERATOR_VERSION,
-                 "seconds": round(time.time() - t0, 1), "rendered_at": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": summary}
+
+        def render(tmp: Path) -> dict:
+            summary = rg.render_gallery(pg.random_gallery(int(seed), wall_patterns=opts.wall_patterns), tmp, opts)
+            return {"hash": want, "seed": int(seed), "profile": profile, "generator": pg.GENERATOR_VERSION,
+                    "seconds": round(time.time() - t0, 1), "rendered_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                    "summary": summary}
+
+        render_in_place_of(final, render)
+    return final
+
+
+def render_in_place_of(final: Path, render) -> None:
+    """Render into a temporary sibling of ``final`` (``render(tmp)`` fills it and returns its stamp), write the stamp
+    as ``stamp.json``, then swap it in for ``final``; the old folder is removed only after the swap. Call it holding
+    :func:`_lock` on ``final``'s seed."""
+    tmp = final.parent / f".tmp-{final.name}-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        stamp = render(tmp)
         (tmp / "stamp.json").write_text(json.dumps(stamp, indent=1) + "\n")
-        old = final.parent / f".old-seed_{int(seed)}-{os.getpid()}"
+        old = final.parent / f".old-{final.name}-{os.getpid()}"
         if final.exists():
             final.rename(old)
         tmp.rename(final)
         shutil.rmtree(old, ignore_errors=True)
-    return final
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def parse_seeds(spec: str, profile: str) -> list[int]:

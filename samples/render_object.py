@@ -30,7 +30,6 @@ The meshes' licences are theirs (``../shared/data/meshes``); renders go outside 
 from __future__ import annotations
 
 import math
-import os
 import sys
 import time
 from dataclasses import asdict, dataclass, replace
@@ -160,13 +159,18 @@ def _mesh_transform(mi, path: Path, radius: float, yaw_deg: float):
     return kind, T().rotate([0, 0, 1], yaw_deg).rotate([1, 0, 0], 90).scale([radius / r] * 3).translate((-c).tolist())
 
 
-def build_object(mi, d: ObjectDraw, env_latlong: np.ndarray, opts: ObjectOptions) -> _Built:
-    """The Mitsuba scene of one object under its probe, with the per-shape information ``render_gt`` reads."""
-    file, tex = MESHES[d.mesh]
-    path = MESH_ROOT / file
+def _mesh_path(mesh: str) -> Path:
+    path = MESH_ROOT / MESHES[mesh][0]
     if not path.is_file():
         raise ConfigError(f"mesh {path} not found: set DARS_MESHES to the folder holding {sorted(MESHES)}")
-    kind, xform = _mesh_transform(mi, path, opts.radius, d.yaw_deg)
+    return path
+
+
+def build_object(mi, d: ObjectDraw, env_latlong: np.ndarray, opts: ObjectOptions, placement=None) -> _Built:
+    """The Mitsuba scene of one object under its probe, with the per-shape information ``render_gt`` reads.
+    ``placement``: ``_mesh_transform``'s (kind, to_world) when the caller has it (else the mesh is read for its box)."""
+    path, tex = _mesh_path(d.mesh), MESHES[d.mesh][1]
+    kind, xform = placement or _mesh_transform(mi, path, opts.radius, d.yaw_deg)
     if tex:
         base: Any = mi.load_dict({"type": "bitmap", "filename": str(MESH_ROOT / tex)})
         base_spec: Any = base
@@ -234,6 +238,7 @@ def render_object(mesh: str, seed: int, out_dir: str | Path, opts: ObjectOptions
                   variant: str | None = None) -> dict[str, Any]:
     """Render one object capture into ``out_dir`` (``transforms_{train,test}.json``, RGBA PNGs, ground-truth maps),
     loadable by :func:`toolkit.scene.load_scene`. Returns a summary (seconds, exposure, the draw)."""
+    import render_gallery as rg
     import torch
 
     from toolkit.io import write_hdr, write_json
@@ -247,11 +252,12 @@ def render_object(mesh: str, seed: int, out_dir: str | Path, opts: ObjectOptions
     env0 = load_environment(str(ENVMAPS / f"probulator_{d.env}_256x128.hdr"))
     cams = {"train": orbit_cameras(opts.n_train, seed * 2 + 0, opts.radius, fov, opts.fill),
             "test": orbit_cameras(opts.n_test, seed * 2 + 1, opts.radius, fov, opts.fill)}
-    preview = _render_rgba(mi, build_object(mi, d, env0.latlong, opts), cams["train"][:: max(1, opts.n_train // 8)], 48, fov, 16,
-                           opts.max_depth, seed, False, "")
+    placement = _mesh_transform(mi, _mesh_path(mesh), opts.radius, d.yaw_deg)  # the mesh's box, read once
+    preview = _render_rgba(mi, build_object(mi, d, env0.latlong, opts, placement), cams["train"][:: max(1, opts.n_train // 8)],
+                           48, fov, 16, opts.max_depth, seed, False, "")
     k = _exposure(preview, opts.target_mean_srgb)
     latlong = env0.latlong * np.float32(k)
-    built = build_object(mi, d, latlong, opts)
+    built = build_object(mi, d, latlong, opts, placement)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     H, W = latlong.shape[:2]
@@ -278,18 +284,12 @@ def render_object(mesh: str, seed: int, out_dir: str | Path, opts: ObjectOptions
         cov = rgba[..., 3:4]
         res["radiance"] = np.where(cov > 1e-4, rgba[..., :3] / np.maximum(cov, 1e-4), 0.0).astype(np.float32)
         res["alpha"] = np.clip(cov[..., 0], 0.0, 1.0)
-        _write(out_dir, split, res, c, header)
+        rg.write_split(out_dir, split, res, c, header, image_format="rgba", write_hdr_files=False)
         seconds[split] = round(time.time() - t1, 1)
     summary = {"mesh": mesh, "seed": seed, "draw": asdict(d), "exposure": k, "seconds": seconds, "variant": variant,
                "views": {s: len(c) for s, c in cams.items()}}
     write_json(out_dir / "render_summary.json", summary)
     return summary
-
-
-def _write(out_dir: Path, split: str, res: dict[str, np.ndarray], cameras: np.ndarray, header: dict) -> None:
-    import render_gallery as rg
-
-    rg.write_split(out_dir, split, res, cameras, header, image_format="rgba", write_hdr_files=False)
 
 
 VALIDATION = tuple((m, 0) for m in sorted(MESHES))
@@ -299,9 +299,11 @@ OBJECT_VERSION = 1
 
 
 def cache_dir(mesh: str, seed: int, root: str | Path | None = None) -> Path:
-    """Where an object capture is cached: ``$DARS_CACHE/objects/<mesh>_s<seed>`` (default ``~/.cache/dars``)."""
-    base = Path(root) if root else Path(os.environ.get("DARS_CACHE", Path.home() / ".cache" / "dars")).expanduser()
-    return base / "objects" / f"{mesh}_s{int(seed)}"
+    """Where an object capture is cached: ``<root>/objects/<mesh>_s<seed>``, ``root`` by default the galleries'
+    cache base (``$DARS_CACHE``, else ``~/.cache/dars``)."""
+    from galleries import dars_cache
+
+    return (Path(root).expanduser() if root else dars_cache()) / "objects" / f"{mesh}_s{int(seed)}"
 
 
 def cache_stamp(mesh: str, seed: int, opts: ObjectOptions = ObjectOptions()) -> dict[str, Any]:
@@ -319,28 +321,22 @@ def ensure_object(mesh: str, seed: int, opts: ObjectOptions = ObjectOptions(), r
     or made by other options."""
     import json
 
-    stamp = cache_stamp(mesh, seed, opts)
-    key = stamp["hash"]
-    out = cache_dir(mesh, seed, root)
-    try:
-        if json.loads((out / "stamp.json").read_text()).get("hash") == key:
-            return out
-    except (OSError, ValueError):
-        pass
-    import shutil
-    import tempfile
+    from galleries import _lock, render_in_place_of
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
-        render_object(mesh, seed, tmp, opts, variant)
-        (tmp / "stamp.json").write_text(json.dumps(stamp, indent=1))
-        if out.exists():
-            shutil.rmtree(out)
-        tmp.rename(out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
+    stamp = cache_stamp(mesh, seed, opts)
+    out = cache_dir(mesh, seed, root)
+    with _lock(out.parent / f".lock-{out.name}"):
+        try:
+            if json.loads((out / "stamp.json").read_text()).get("hash") == stamp["hash"]:
+                return out
+        except (OSError, ValueError):
+            pass
+
+        def render(tmp: Path) -> dict:
+            render_object(mesh, seed, tmp, opts, variant)
+            return stamp
+
+        render_in_place_of(out, render)
     return out
 
 

@@ -66,15 +66,12 @@ def test_tiny_object_render_loads_as_an_object_with_ground_truth(tmp_path):
     rgba = sc.load_image(0, with_alpha=True).numpy()
     alpha = rgba[3]
     assert (alpha < 0.01).mean() > 0.3 and (alpha > 0.99).mean() > 0.05  # a transparent background around the object
-    import cv2
-
-    nrm = cv2.imread(str(out / "train" / "r_000_normal.png"), cv2.IMREAD_UNCHANGED)[..., ::-1].astype(np.float64)
-    nrm = nrm / (255.0 if nrm.max() <= 255 else 65535.0) * 2 - 1
+    nrm = sc.load_extra(0, "normal").permute(1, 2, 0).numpy()
     hit = alpha > 0.99
     norms = np.linalg.norm(nrm[hit], axis=-1)
     assert np.all(np.abs(norms - 1) < 0.05)  # unit world normals on the object
-    assert np.all(np.abs(nrm[alpha < 0.01] + 1).max(-1) < 0.01)  # encoded 0 (→ −1) where nothing was hit
-    sem = cv2.imread(str(out / "train" / "r_000_semantic.png"), cv2.IMREAD_UNCHANGED)
+    assert np.all(np.abs(nrm[alpha < 0.01]).max(-1) < 0.01)  # zero (encoded 0) where nothing was hit
+    sem = sc.load_extra(0, "semantic").numpy()
     assert set(np.unique(sem[hit])) == {ro.CLASSES["other"]} and set(np.unique(sem[alpha < 0.01])) == {ro.BACKGROUND}
 
 
@@ -91,4 +88,5 @@ def test_object_cache_renders_once_and_again_when_the_options_change(tmp_path):
     other = ro.ObjectOptions(size=20, n_train=2, n_test=1, spp=4, gt_subsamples=1, progress=False)
     assert ro.ensure_object("spot", 1, other, root=tmp_path, variant="scalar_rgb") == a
     assert json.loads((a / "transforms_train.json").read_text())["w"] == 20
-    assert [p.name for p in (tmp_path / "objects").iterdir()] == ["spot_s1"]  # no temporary folder left behind
+    assert [p.name for p in (tmp_path / "objects").iterdir() if p.is_dir()] == ["spot_s1"]  # no temporary folder left
+    assert (tmp_path / "objects" / ".lock-spot_s1").is_file()  # renders of one capture wait for each other
