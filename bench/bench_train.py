@@ -359,7 +359,7 @@ def case_objects(objects: list[tuple[str, int]], steps: int, threads: int, out_d
     """Every object capture of ``samples/render_object.py`` (a reference mesh under an HDR probe, RGBA photos;
     rendered on first use, cached): train for ``steps``, evaluate on the test views; print each object's PSNR,
     normal MAE (against the ground truth), the normals' angle to the rendered depth's, albedo MAE (raw and
-    scale-aligned), then the mean and the worst."""
+    scale-aligned), the final light's L2 to the probe's SH (eq. 36), then the mean and the worst."""
     sys.path.insert(0, str(ROOT / "samples"))
     from render_object import ensure_object
 
@@ -377,11 +377,14 @@ def case_objects(objects: list[tuple[str, int]], steps: int, threads: int, out_d
         rows[name] = {"steps": info["steps"], "train_wall_s": info["wall_s"], "psnr": m.get("psnr"), "ssim": m.get("ssim"),
                       "normal_mae": m.get("normal_mae"), "normal_vs_depth_deg": nd.get("angle_mean_deg"),
                       "back_facing_share": nd.get("back_facing_share"), "albedo_mae": m.get("albedo_mae"),
-                      "albedo_mae_aligned": res.details["materials"]["albedo_mae_aligned"]}
+                      "albedo_mae_aligned": res.details["materials"]["albedo_mae_aligned"],
+                      "env_light_l2": m.get("env_light_l2")}
         print(f"[objects] {name}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                                for k, v in rows[name].items()), flush=True)
-    keys = ["psnr", "ssim", "normal_mae", "normal_vs_depth_deg", "back_facing_share", "albedo_mae", "albedo_mae_aligned", "steps"]
-    worse_high = {"normal_mae", "normal_vs_depth_deg", "back_facing_share", "albedo_mae", "albedo_mae_aligned"}
+    keys = ["psnr", "ssim", "normal_mae", "normal_vs_depth_deg", "back_facing_share", "albedo_mae", "albedo_mae_aligned",
+            "env_light_l2", "steps"]
+    worse_high = {"normal_mae", "normal_vs_depth_deg", "back_facing_share", "albedo_mae", "albedo_mae_aligned",
+                  "env_light_l2"}
     table = _with_mean_and_worst(rows, keys, worse_high)
     print(_table(f"[objects] {len(rows)} object captures, {steps} steps, {threads} threads, train seed {train_seed}"
                  f"{' ' + ' '.join(extra) if extra else ''} (photos + poses only)", ["object"] + keys, table))

@@ -124,12 +124,14 @@ def test_two_process_gloo_training_stays_in_sync_and_evaluates(tiny, tmp_path):
 
 def test_two_processes_share_rank_0s_room_box(tiny, tmp_path):
     """--layout-depth under torchrun: rank 0 fits the room's box on every photo and the ranks take it (one fit, one
-    box), instead of each fitting its own on its shard."""
+    box), instead of each fitting its own on its shard. So with --light-fit on: rank 0 fits the light at the switch to
+    stage (b) and every rank takes it (the parameter digests include l_env)."""
     run = tmp_path / "lay"
     p = _torchrun(2, "train", str(tiny), "--out", str(run), "--steps", "4", "--threads", "1", "--batch-rays", "512",
-                  "--layout-depth", "0.1", "--no-auto-priors")
+                  "--layout-depth", "0.1", "--no-auto-priors", "--light-fit", "on")
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-8000:]
     assert p.stderr.count("room layout: box") == 1, p.stderr[-3000:]  # rank 0 alone fits and reports
+    assert p.stderr.count("light from the shading at step 2") == 1, p.stderr[-3000:]
     meta = json.loads((run / "config.json").read_text())
     assert meta["world_size"] == 2 and set(meta["room_layout"]["faces"]) == set(FACE_NAMES)
     assert meta["room_layout"]["photos"] == 16  # fitted on every photo, not on rank 0's shard of 8

@@ -438,13 +438,15 @@ def test_room_geometry_losses_follow_the_scene_type(sample_scene_path):
     keys = tuple(ROOM_LOSSES)
     assert set(keys) == {"sparse_depth", "opacity", "depth_normal", "layout_depth", "orientation", "layout_normal",
                          "albedo_smooth"}
-    assert make_config("fast", steps=1).losses.orientation is None and OBJECT_LOSSES == {"orientation": 0.1}
+    assert make_config("fast", steps=1).losses.orientation is None and OBJECT_LOSSES == {"orientation": 0.1,
+                                                                                        "depth_normal": 0.5}
     assert all(v > 0 for v in ROOM_LOSSES.values())
     room, _ = resolve_config(make_config("fast", steps=1), scene)
     assert {k: getattr(room.losses, k) for k in keys} == ROOM_LOSSES
     obj, _ = resolve_config(make_config("fast", steps=1, scene_type="object"), scene)
     assert all(getattr(obj.losses, k) == OBJECT_LOSSES.get(k, 0.0) for k in keys)
     assert (room.losses.orientation, obj.losses.orientation) == (1.0, 0.1)
+    assert (room.losses.depth_normal, obj.losses.depth_normal, obj.losses.opacity) == (0.5, 0.5, 0.0)
     cfg = make_config("fast", steps=1)
     cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, depth_normal=0.0, opacity=0.3))
     mixed, _ = resolve_config(cfg, scene)

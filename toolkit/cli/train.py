@@ -59,6 +59,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--light-init", default="full", choices=["full", "ambient"],
                    help="how the light prior starts l_env: all 9 SH coefficients (full) or only band 0, its level and "
                         "colour (ambient; the directions are then left to the eq. 22 light stage)")
+    q.add_argument("--light-fit", default="auto", choices=["auto", "on", "off"],
+                   help="at the switch to stage (b), fit l_env's directional bands to the photos' shading on the "
+                        "rendered depth's normals: auto = for an object whose light starts as a grey ambient (RGBA "
+                        "photos get no light network estimate), on = always, off = never (README, \"An object's light "
+                        "from its shading\")")
     q.add_argument("--no-mat-loss", action="store_true", help="ablation: no L_mat")
     q.add_argument("--light-residual", choices=["rgb", "grey", "off"], default=None,
                    help="the field's per-point light residual Δl(x): one per colour channel (rgb), one shared by the "
@@ -73,7 +78,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "transparent background)")
     q.add_argument("--depth-normal", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the depth-normal loss: the rendered normal follows the normal of the rendered "
-                        "depth map (default: 0.5 for a room, 0 for an object; 0 = off)")
+                        "depth map (default: 0.5 for a room and an object; 0 = off)")
     q.add_argument("--eikonal", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of L_eikonal: the normal head follows the density's gradient (default: 0.01 for a "
                         "room, 0.1 for an object, taken over 1/512 and 1/64 of the box; 0 = off)")
@@ -184,6 +189,7 @@ _RESUME_OPTIONS = (
     ("--no-semantics", "no_semantics", lambda m: not m["config"].get("semantics", True), lambda v: v or None),
     ("--fixed-light", "fixed_light", lambda m: bool(m["config"].get("fixed_light")), lambda v: v or None),
     ("--light-init", "light_init", lambda m: m["config"].get("light_init", "full"), lambda v: None if v == "full" else v),
+    ("--light-fit", "light_fit", lambda m: m["config"].get("light_fit", "off"), lambda v: None if v == "auto" else v),
     ("--no-mat-loss", "no_mat_loss", lambda m: m["config"].get("losses", {}).get("mat", 1.0) == 0, lambda v: v or None),
     ("--baseline", "baseline", lambda m: "nerf" if m["config"].get("shading") == "radiance" else None, lambda v: v),
     ("--albedo-supervision", "albedo_supervision", lambda m: bool(m["config"].get("albedo_supervision")),
@@ -279,6 +285,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides["fixed_light"] = True
     if args.light_init != "full":
         overrides["light_init"] = args.light_init
+    if args.light_fit != "auto":
+        overrides["light_fit"] = args.light_fit
     if args.no_mat_loss:
         overrides["mat_loss"] = False
     if args.baseline:

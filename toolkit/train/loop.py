@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 import time
@@ -21,7 +22,7 @@ from .config import TrainConfig, resolve_config
 from .data import prepare_data
 from .folder import first_checkpoint_due, open_run_dir, read_checkpoint, read_run_config, run_scene_options
 from .step import (RETIME_AT, TrainingDiverged, TrainState, calibrate_steps, init_state, is_light_step, light_step,
-                   lr_progress, progress, retime_steps, train_step)
+                   lr_progress, progress, retime_steps, stage_b_starts, train_step, wants_light_fit)
 
 __all__ = ["train", "save_checkpoint", "load_checkpoint"]
 
@@ -139,6 +140,34 @@ def _room_layout(cfg: TrainConfig, scene, saved: dict | None, ddp, log, priors_r
     return ddp.broadcast_object(fit_room_layout(scene, log=log) if ddp.is_main else None)
 
 
+def _finite_or_none(v: float) -> float | None:
+    return v if math.isfinite(v) else None
+
+
+def _fit_light(state: TrainState, data, ddp, main: bool, log, log_path: Path) -> None:
+    """Fit l_env's directional bands to the photos' shading (:mod:`toolkit.lightfit`): rank 0 fits on its views
+    and every rank takes its light."""
+    from ..lightfit import fit_light_to_shading
+
+    res = None
+    if main:
+        cfg = state.cfg
+        res = fit_light_to_shading(state.field, state.occupancy, state.background, state.l_env, data.scene,
+                                   cfg.sampler, cfg.shading, cfg.deferred)
+    sh = res.sh.detach().cpu() if main else None
+    if ddp is not None:
+        sh = ddp.broadcast_object(sh)
+    with torch.no_grad():
+        state.l_env.copy_(sh.to(state.l_env))
+    if main:
+        log(f"[dars] light from the shading at step {state.step}: {res.describe()}")
+        with open(log_path, "a") as f:
+            f.write(json.dumps({"kind": "light_fit", "step": state.step, "used": res.used, "pixels": res.pixels,
+                                "tv_before": _finite_or_none(res.tv_before),
+                                "tv_after": _finite_or_none(res.tv_after), "reason": res.reason,
+                                "l_env": sh.tolist()}) + "\n")
+
+
 def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume: bool = False, split: str = "train",
           progress_bar: bool = True, log=None, stop_at: int | None = None,
           priors_root: str | Path | None = None, force: bool = False, downscale: int = 1,
@@ -254,6 +283,7 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
     t_window = None
     mark, checks, calibration = None, [], saved_calibration  # re-timing of a budget calibrated in this call
     last = {}
+    fit_light = wants_light_fit(cfg, data.l_env_source)
     try:
         while True:
             if cfg.steps and state.step >= cfg.steps:
@@ -268,6 +298,8 @@ def train(scene_path: str | Path, out_dir: str | Path, cfg: TrainConfig, resume:
                                        warmup=state.step < cfg.occupancy_warmup)
                 if ddp is not None:  # each rank probed its own random cells: rank 0's grid for all
                     ddp.sync_occupancy(state.occupancy)
+            if fit_light and stage_b_starts(state.cfg, state.step):
+                _fit_light(state, data, ddp, main, log, log_path)
             if is_light_step(state.cfg, state.step):
                 res = light_step(state, data)
                 res["stage"] = "b-light"

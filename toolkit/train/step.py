@@ -211,6 +211,20 @@ def is_light_step(cfg, step: int) -> bool:
     return _progress_at(cfg, step) >= cfg.pretrain_fraction and step % cfg.light_period < cfg.light_steps
 
 
+def wants_light_fit(cfg, l_env_source: str) -> bool:
+    """Whether a run fits l_env's directional bands to the photos' shading when stage (b) starts
+    (:attr:`TrainConfig.light_fit`, :mod:`toolkit.lightfit`): never with a fixed light or radiance shading; ``auto``
+    only for an object whose light starts as a grey ambient (``l_env_source`` as :func:`prepare_data` names it)."""
+    if cfg.fixed_light or cfg.shading != "pbr" or cfg.light_fit == "off":
+        return False
+    return cfg.light_fit == "on" or (cfg.scene_type == "object" and l_env_source.startswith("grey ambient"))
+
+
+def stage_b_starts(cfg, step: int) -> bool:
+    """Whether step ``step`` (0-based) is the first of stage (b): none when stage (a) has no steps."""
+    return step >= 1 and _progress_at(cfg, step) >= cfg.pretrain_fraction > _progress_at(cfg, step - 1)
+
+
 def field_steps(cfg, steps: int | None = None) -> int:
     """How many of the first ``steps`` (default ``cfg.steps``) training steps optimise the field: the rest are eq. 22
     l_env steps (:func:`is_light_step`). At a fixed step count the lighting stage takes its steps from the field's
