@@ -864,15 +864,9 @@ def normal_depth_agreement(cameras: Cameras, index: int, depth: torch.Tensor, no
     Returns:
         (angles float [N], back-facing bool [N]) over the N counted pixels (N may be 0).
     """
-    from .losses import depth_normals
-    from .scene import generate_rays
+    from .losses import depth_map_normals
 
-    h, w = depth.shape
-    rays = generate_rays(cameras.to("cpu"), [index])
-    d = rays.directions.reshape(h, w, 3).float()
-    t = depth.float() / rays.z_scale.reshape(h, w).float()
-    pts = rays.origins.reshape(h, w, 3).float() + d * t[..., None]
-    nd = depth_normals(pts, d, 1)
+    nd, d = depth_map_normals(cameras.to("cpu"), index, depth)
     solid = (opacity >= 0.5).float()[None, None]
     solid = (-torch.nn.functional.max_pool2d(-solid, 3, stride=1))[0, 0] > 0.5  # [H-2, W-2]: all 9 opaque
     ok = solid & (nd.square().sum(-1) > 0.5) & torch.isfinite(depth[1:-1, 1:-1])

@@ -8,7 +8,7 @@ objects the final light was barely directional (README, "An object's light from 
 
 At the stage switch this module fits the directional bands (l = 1, 2) of ``l_env`` to the photos, with the level
 (band 0) kept: render a few training views' depth, take the normals of the rendered depth map
-(:func:`toolkit.losses.depth_normals`; on an object they follow the surface where the normal head may not yet), and
+(:func:`toolkit.losses.depth_map_normals`; on an object they follow the surface where the normal head may not yet), and
 find the light whose irradiance ``E(n)`` makes ``log(photo / E(n))`` change least between neighbouring pixels of the
 object (an L1 total variation: a Lambertian object's colour is albedo × irradiance, albedo is piecewise constant, and
 the irradiance of a low-order SH light varies with the normal). Uses the photos and the field's depth only.
@@ -20,8 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from .cameras import generate_rays
-from .losses import depth_normals
+from .losses import depth_map_normals
 from .sh import SH_BAND_OF_K, SH_IRRADIANCE_BANDS, sh_basis
 
 FIT_VIEWS = 12
@@ -187,12 +186,8 @@ def fit_light_to_shading(field, occupancy, background, l_env: torch.Tensor, scen
             w, h = max(8, round(w0 * s)), max(8, round(h0 * s))
             cams = scene.cameras[[i]].resized(w, h).to(dev)
             r = render_image(field, cams, 0, cfg, inputs)
-            rays = generate_rays(cams, [0], aabb=field.space if field.cfg.contraction else inputs.aabb,
-                                 near=cfg.near, far=cfg.far)
-            o, d = rays.origins.reshape(h, w, 3), rays.directions.reshape(h, w, 3)
-            t = r.depth / rays.z_scale.reshape(h, w)  # camera-axis depth -> distance along the ray
             nd = torch.zeros(h, w, 3, device=dev)
-            nd[1:-1, 1:-1] = depth_normals(o + d * t[..., None], d)
+            nd[1:-1, 1:-1], d = depth_map_normals(cams, 0, r.depth)
             facing = -(nd * d).sum(-1)  # a depth step (an occluding edge) gives a normal at right angles to the ray
             photo, keep = _photo_at(scene, i, w, h)
             m = keep & (r.opacity.cpu() > 0.95) & (facing.cpu() > 0.15)

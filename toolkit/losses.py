@@ -228,6 +228,27 @@ def depth_normals(points: torch.Tensor, view_dirs: torch.Tensor, k: int = 1) -> 
     return torch.where((n * view_dirs[..., k:-k, k:-k, :]).sum(-1, keepdim=True) > 0, -n, n)
 
 
+def depth_map_normals(cameras, index: int, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normals of a whole rendered depth map of camera ``index`` (:func:`depth_normals`, ±1 pixel), and the view's
+    ray directions.
+
+    Args:
+        cameras: :class:`~toolkit.cameras.Cameras` on ``depth``'s device; ``index`` the view.
+        depth: float [H, W] rendered depth along the camera axis.
+
+    Returns:
+        (float [H − 2, W − 2, 3] unit normals turned toward the camera (zero where degenerate), float [H, W, 3]
+        unit ray directions).
+    """
+    from .cameras import generate_rays
+
+    h, w = depth.shape
+    rays = generate_rays(cameras, [index])
+    d = rays.directions.reshape(h, w, 3).float()
+    t = depth.float() / rays.z_scale.reshape(h, w).float()  # camera-axis depth -> distance along the ray
+    return depth_normals(rays.origins.reshape(h, w, 3).float() + d * t[..., None], d, 1), d
+
+
 def depth_normal_loss(points: torch.Tensor, normals: torch.Tensor, view_dirs: torch.Tensor,
                       weights: torch.Tensor) -> torch.Tensor:
     """Σ w (1 − n̂ · n_depth) / Σ w over the interior pixels of image patches: the rendered normal n̂ against the
