@@ -79,6 +79,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--depth-normal", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of the depth-normal loss: the rendered normal follows the normal of the rendered "
                         "depth map (default: 0.5 for a room and an object; 0 = off)")
+    q.add_argument("--patch-stride", type=number(int, min=1), default=None, metavar="N",
+                   help="photo pixels between the pixels of the training patches (SSIM, depth-normal, albedo "
+                        "smoothness; default: L_eikonal's step in pixels, so a patch covers the same length of surface "
+                        "at any resolution)")
     q.add_argument("--eikonal", type=NONNEGATIVE, default=None, metavar="W",
                    help="weight of L_eikonal: the normal head follows the density's gradient (default: 0.01 for a "
                         "room, 0.1 for an object, taken over 1/512 and 1/64 of the box; 0 = off)")
@@ -199,6 +203,7 @@ _RESUME_OPTIONS = (
     *((f"--{flag}", attr, (lambda m, k=key: m["config"].get("losses", {}).get(k) or 0.0),
        lambda v: None if v is None else float(v))
       for flag, attr, key in _LOSS_OPTIONS),
+    ("--patch-stride", "patch_stride", lambda m: m["config"].get("patch_stride", 1), lambda v: v),
     ("--labels", "labels", lambda m: m["config"].get("labels", "predicted"), lambda v: None if v == "predicted" else v),
     ("--masks", "masks", lambda m: m["config"].get("masks", "off"), lambda v: None if v == "auto" else v),
     ("--light-residual", "light_residual", lambda m: _residual_mode(m["config"].get("field", {})), lambda v: v),
@@ -303,6 +308,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides["deferred"] = args.shade == "rays"
     if snapshots:
         overrides["snapshot_minutes"] = snapshots
+    if args.patch_stride is not None:
+        overrides["patch_stride"] = int(args.patch_stride)
     if args.schedule_knots:
         from ..train.config import parse_knots
 

@@ -315,12 +315,14 @@ class Batch:
 
 def sample_batch(state: TrainState, data: TrainData) -> Batch:
     """A batch of training rays: ``batch_rays`` pixels drawn by the ray sampler (the last ``ssim_patches`` x s x s
-    of them as s x s patches around drawn pixels), their targets converted from the packed buffers to float here."""
+    of them as s x s patches around drawn pixels, ``patch_stride`` photo pixels apart), their targets converted from
+    the packed buffers to float here."""
     cfg = state.cfg
     gen = state.generator
     lay = data.weights  # the views' sizes
-    s = cfg.ssim_patch_size
-    fits = int(lay.heights.min()) > s and int(lay.widths.min()) > s
+    s, r = cfg.ssim_patch_size, cfg.patch_stride or 1
+    span = (s - 1) * r + 1  # a patch's extent in photo pixels
+    fits = int(lay.heights.min()) > span and int(lay.widths.min()) > span
     patches_used = cfg.losses.ssim > 0 or (cfg.losses.depth_normal or 0.0) > 0 or (cfg.losses.albedo_smooth or 0.0) > 0
     P = cfg.ssim_patches if (patches_used and fits) else 0
     n_rand = cfg.batch_rays - P * s * s
@@ -330,9 +332,9 @@ def sample_batch(state: TrainState, data: TrainData) -> Batch:
     if P:
         pidx, patch_iw = select_rays(state.ray_sampler, P, gen)
         pv, prow, pcol = lay.locate(pidx)
-        pr = torch.minimum((prow - s // 2).clamp_min(0), lay.heights[pv] - s)
-        pc = torch.minimum((pcol - s // 2).clamp_min(0), lay.widths[pv] - s)
-        dr, dc = torch.meshgrid(torch.arange(s), torch.arange(s), indexing="ij")
+        pr = torch.minimum((prow - span // 2).clamp_min(0), lay.heights[pv] - span)
+        pc = torch.minimum((pcol - span // 2).clamp_min(0), lay.widths[pv] - span)
+        dr, dc = torch.meshgrid(torch.arange(s) * r, torch.arange(s) * r, indexing="ij")
         views = torch.cat([views, pv.repeat_interleave(s * s)])
         rows = torch.cat([rows, (pr[:, None] + dr.reshape(1, -1)).reshape(-1)])
         cols = torch.cat([cols, (pc[:, None] + dc.reshape(1, -1)).reshape(-1)])
@@ -416,7 +418,8 @@ def _planar_term(state: TrainState, data: TrainData) -> torch.Tensor:
 
 
 def _depth_normal_term(out, batch: Batch, s: int) -> torch.Tensor:
-    """:func:`toolkit.losses.depth_normal_loss` on the batch's s x s SSIM patches (the last rays of the batch)."""
+    """:func:`toolkit.losses.depth_normal_loss` on the batch's s x s SSIM patches (the last rays of the batch; its
+    ±1 pixel stencil spans ``patch_stride`` photo pixels)."""
     n0, P = batch.n_random, batch.patch_iw.shape[0]
     rays = batch.rays
     o, d = rays.origins[n0:], rays.directions[n0:]
