@@ -101,6 +101,9 @@ def test_the_option_is_resolved_recorded_and_checked(sample_scene_path):
     assert TrainConfig.from_dict(d).patch_stride == 1
     with pytest.raises(ConfigError, match="patch_stride=0"):
         dataclasses.replace(cfg, patch_stride=0)
+    with pytest.raises(ConfigError, match="patch_stride=9: a 16 px patch then spans 136 photo pixels, but the smallest "
+                                          r"photo is 128 px across; give --patch-stride 8 or less"):
+        resolve_config(make_config("fast", steps=1, patch_stride=9), load_scene(sample_scene_path, "train"))
 
 
 def test_cli_records_the_stride_and_refuses_another_on_resume(tmp_path, capsys):

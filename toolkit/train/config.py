@@ -385,12 +385,17 @@ def patch_stride(scene: Scene, eikonal_step: float, patch: int) -> int:
     normal head's targets are then measured on the same length of surface whatever the photos' resolution. On the
     Ethiopian head at 1000 px (2 mm pixels, the object's step 2 cm), two renders of the same ±1 pixel normals
     differed by 47-74° (a training render's depth is noisy at the scale of its samples), and a 16 px patch covered
-    3 cm of the head: the normal head stayed one direction over the whole object. On the generated objects at
-    128 px, on NeRF Lego at 400 px and in a room (step 1/512 of the box) the rule gives 1 or 2.
+    3 cm of the head. On the generated objects at 128 px, on NeRF Lego at 400 px and in a room (step 1/512 of the
+    box) the rule gives 1 or 2 (README, "Training patches measured on the object").
     """
     cams = scene.cameras
-    fit = (min(int(cams.width.min()), int(cams.height.min())) - 2) // max(patch - 1, 1)
+    fit = patch_stride_limit(min(int(cams.width.min()), int(cams.height.min())), patch)
     return int(max(1, min(round(eikonal_step_pixels(scene, eikonal_step)), fit)))
+
+
+def patch_stride_limit(side: int, patch: int) -> int:
+    """The widest stride at which a ``patch`` x ``patch`` patch fits in a photo ``side`` pixels across (at least 1)."""
+    return max(1, (side - 2) // max(patch - 1, 1))
 
 
 def eikonal_step_pixels(scene: Scene, eikonal_step: float) -> float:
@@ -412,6 +417,8 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
     * the loss weights left None (:data:`ROOM_LOSSES` for a room, :data:`OBJECT_LOSSES` or 0 for an object;
       L_eikonal's weight and step by :data:`EIKONAL`);
     * the scene box (:func:`resolve_scene_box`);
+    * ``patch_stride`` left None: :func:`patch_stride` (a stride given that makes a patch wider than the smallest
+      photo is an error);
     * with ``auto_resolution`` the hash grid's finest level resolves a quarter of the pixel footprint at the median
       camera distance — ``next_pow2(4 · box extent / footprint)`` (twice that with contraction: the box spans half
       of each grid axis), clamped to [256, 2048].
@@ -445,6 +452,14 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
         if log is not None:
             log("[dars] depth_normal off: it needs image patches and ssim_patches=0")
     scene, cfg = resolve_scene_box(cfg, scene, log)
+    if cfg.patch_stride is not None and cfg.patch_stride > 1 and cfg.ssim_patches > 0:
+        cams = scene.cameras
+        side = min(int(cams.width.min()), int(cams.height.min()))
+        span = (cfg.ssim_patch_size - 1) * cfg.patch_stride + 1
+        if span >= side:
+            raise ConfigError(f"patch_stride={cfg.patch_stride}: a {cfg.ssim_patch_size} px patch then spans {span} "
+                              f"photo pixels, but the smallest photo is {side} px across; give --patch-stride "
+                              f"{patch_stride_limit(side, cfg.ssim_patch_size)} or less, or leave it to the data")
     if cfg.patch_stride is None:
         r = patch_stride(scene, cfg.losses.eikonal_step, cfg.ssim_patch_size)
         cfg = replace(cfg, patch_stride=r)
