@@ -388,23 +388,33 @@ def patch_stride(scene: Scene, eikonal_step: float, patch: int) -> int:
     3 cm of the head. On the generated objects at 128 px, on NeRF Lego at 400 px and in a room (step 1/512 of the
     box) the rule gives 1 or 2 (README, "Training patches measured on the object").
     """
-    cams = scene.cameras
-    fit = patch_stride_limit(min(int(cams.width.min()), int(cams.height.min())), patch)
+    fit = patch_stride_limit(_smallest_side(scene), patch)
     return int(max(1, min(round(eikonal_step_pixels(scene, eikonal_step)), fit)))
 
 
 def patch_stride_limit(side: int, patch: int) -> int:
-    """The widest stride at which a ``patch`` x ``patch`` patch fits in a photo ``side`` pixels across (at least 1)."""
+    """The widest stride at which a ``patch`` x ``patch`` patch fits in a photo ``side`` pixels across (at least 1):
+    its span ``(patch − 1) · stride + 1`` stays under ``side``, as :func:`toolkit.train.step.sample_batch` needs."""
     return max(1, (side - 2) // max(patch - 1, 1))
+
+
+def _smallest_side(scene: Scene) -> int:
+    """The shortest side, in pixels, of the scene's smallest photo."""
+    cams = scene.cameras
+    return min(int(cams.width.min()), int(cams.height.min()))
+
+
+def pixel_footprint(scene: Scene) -> float:
+    """Metres per pixel at the median camera distance from the box centre, with the median focal length."""
+    cams = scene.cameras
+    dist = float((cams.origins - scene.aabb.mean(0)).norm(dim=-1).median())
+    return dist / float(cams.fx.median())
 
 
 def eikonal_step_pixels(scene: Scene, eikonal_step: float) -> float:
     """L_eikonal's central-difference step (``eikonal_step`` x the box's mean edge) in pixels at the median camera
-    distance from the box centre (median focal length)."""
-    cams = scene.cameras
-    dist = float((cams.origins - scene.aabb.mean(0)).norm(dim=-1).median())
-    footprint = dist / float(cams.fx.median())
-    return float(eikonal_step) * float((scene.aabb[1] - scene.aabb[0]).mean()) / max(footprint, 1e-12)
+    distance from the box centre (:func:`pixel_footprint`)."""
+    return float(eikonal_step) * float((scene.aabb[1] - scene.aabb[0]).mean()) / max(pixel_footprint(scene), 1e-12)
 
 
 def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfig, Scene]:
@@ -452,11 +462,10 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
         if log is not None:
             log("[dars] depth_normal off: it needs image patches and ssim_patches=0")
     scene, cfg = resolve_scene_box(cfg, scene, log)
-    if cfg.patch_stride is not None and cfg.patch_stride > 1 and cfg.ssim_patches > 0:
-        cams = scene.cameras
-        side = min(int(cams.width.min()), int(cams.height.min()))
-        span = (cfg.ssim_patch_size - 1) * cfg.patch_stride + 1
-        if span >= side:
+    if cfg.patch_stride is not None and cfg.ssim_patches > 0:
+        side = _smallest_side(scene)
+        if cfg.patch_stride > patch_stride_limit(side, cfg.ssim_patch_size):
+            span = (cfg.ssim_patch_size - 1) * cfg.patch_stride + 1
             raise ConfigError(f"patch_stride={cfg.patch_stride}: a {cfg.ssim_patch_size} px patch then spans {span} "
                               f"photo pixels, but the smallest photo is {side} px across; give --patch-stride "
                               f"{patch_stride_limit(side, cfg.ssim_patch_size)} or less, or leave it to the data")
@@ -470,10 +479,7 @@ def resolve_config(cfg: TrainConfig, scene: Scene, log=None) -> tuple[TrainConfi
                 "--patch-stride N sets it)")
     if not cfg.auto_resolution or cfg.field.encoding != "grid":
         return cfg, scene
-    cams = scene.cameras
-    centre = scene.aabb.mean(0)
-    dist = float((cams.origins - centre).norm(dim=-1).median())
-    footprint = dist / float(cams.fx.median())
+    footprint = pixel_footprint(scene)
     extent = float((scene.aabb[1] - scene.aabb[0]).max())
     k = 8.0 if cfg.field.contraction else 4.0
     res = 2 ** math.ceil(math.log2(max(k * extent / footprint, 1.0)))
