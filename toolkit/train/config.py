@@ -385,8 +385,8 @@ def patch_stride(scene: Scene, eikonal_step: float, patch: int) -> int:
     normal head's targets are then measured on the same length of surface whatever the photos' resolution. On the
     Ethiopian head at 1000 px (2 mm pixels, the object's step 2 cm), two renders of the same ±1 pixel normals
     differed by 47-74° (a training render's depth is noisy at the scale of its samples), and a 16 px patch covered
-    3 cm of the head. On the generated objects at 128 px, on NeRF Lego at 400 px and in a room (step 1/512 of the
-    box) the rule gives 1 or 2 (README, "Training patches measured on the object").
+    3 cm of the head. On the generated objects at 128 px and in a room (step 1/512 of the box) the rule gives 1 or 2,
+    on NeRF Lego 2 at 200 px and 4 at 400 px (README, "Training patches measured on the object").
     """
     fit = patch_stride_limit(_smallest_side(scene), patch)
     return int(max(1, min(round(eikonal_step_pixels(scene, eikonal_step)), fit)))
