@@ -219,8 +219,12 @@ def test_training_sample_counts_follow_w(run_dir):
     hi = hit & (w > sc.tau)
     if hi.any():
         assert float(fine[hi].mean()) > sc.n_fine
+    small = training_sample_counts(run, 0, chunk=100)  # chunks bound the memory, not the budgets
+    assert torch.equal(small["samples"], counts) and torch.equal(small["fine"], fine)
     with pytest.raises(DarsError, match="out of range"):
         training_sample_counts(run, 999)
+    with pytest.raises(DarsError, match="chunk"):
+        training_sample_counts(run, 0, chunk=0)
 
 
 def test_bad_inputs():

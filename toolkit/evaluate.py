@@ -301,7 +301,7 @@ def _render_view(run, cameras: Cameras, i: int, chunk: int) -> dict[str, torch.T
 
 
 @torch.no_grad()
-def training_sample_counts(run, index: int, chunk: int | None = None) -> dict[str, torch.Tensor]:
+def training_sample_counts(run, index: int, chunk: int = 8192) -> dict[str, torch.Tensor]:
     """Samples per ray the *training* sampler gives every pixel of training view ``index`` (Fig. 7).
 
     With DARS the fine-sample budget of each ray is ∝ W at its pixel (:func:`toolkit.sampling.ray_budgets`: a fixed
@@ -310,12 +310,16 @@ def training_sample_counts(run, index: int, chunk: int | None = None) -> dict[st
     samples in empty space are skipped by the occupancy grid in both cases. (``render_image`` for test views uses
     uniform budgets: a novel view has no W.) Stratified jitter is off, so the maps are deterministic.
 
+    The budgets are shared over the whole image, as over a training batch: a first pass finds the rays with an
+    occupied coarse sample (no field query), the budgets are drawn over all of them, and the image is then rendered
+    ``chunk`` rays at a time, so the result does not depend on ``chunk`` and memory stays that of one chunk.
+
     Returns:
         ``{"samples": float [H, W] samples per ray (occupied coarse + fine), "fine": float [H, W] fine samples per
         ray (the budget)}``, CPU.
     """
     from .pipeline import DarsContext, RenderConfig, RenderInputs, render_rays
-    from .sampling import neighbour_views
+    from .sampling import coarse_samples, neighbour_views, ray_budgets, stratified_edges
     from .scene import generate_rays
 
     dev = _device_of(run)
@@ -323,22 +327,31 @@ def training_sample_counts(run, index: int, chunk: int | None = None) -> dict[st
     cams = scene.cameras.to(dev)
     if not 0 <= index < len(cams):
         raise DarsError(f"training_sample_counts: view {index} out of range (the run has {len(cams)} training views)")
+    if not isinstance(chunk, int) or chunk < 1:
+        raise DarsError(f"training_sample_counts: chunk={chunk!r} must be a positive number of rays")
     sampler = replace(run.cfg.sampler, perturb=False)
     h, w = int(cams.height[index]), int(cams.width[index])
     bounds = run.field.space if run.cfg.field.contraction else scene.aabb.to(dev)
     rays = generate_rays(cams, [index], aabb=bounds, near=scene.near, far=scene.far)
-    dars = ray_w = None
+    dars = budgets = None
     if sampler.dars and run.weight_maps is not None:
         wm = run.weight_maps.to(dev)
         dars = DarsContext(cams, wm, neighbour_views(scene.cameras, sampler.n_neighbours).to(dev))
-        ray_w = wm[index].reshape(-1)  # view `index` as float [H, W]
-    chunk = chunk or h * w  # one chunk: the budget is shared over the whole image, as over a training batch
+        hit = torch.zeros(len(rays), dtype=torch.bool, device=dev)  # rays with an occupied coarse sample
+        for s in range(0, len(rays), chunk):
+            sub = rays[s:s + chunk]
+            coarse, _ = coarse_samples(sub, stratified_edges(sub, sampler.n_coarse, False, None, run.field.space),
+                                       run.occupancy)
+            hit[s + coarse.ray_indices] = True
+        budgets = torch.zeros(len(rays), dtype=torch.long, device=dev)
+        budgets[hit] = ray_budgets(wm[index].reshape(-1)[hit], sampler.n_fine, sampler.tau, sampler.budget_min,
+                                   sampler.budget_max)
     total, fine = [], []
     for s in range(0, len(rays), chunk):
-        sub = rays[s:s + chunk]
-        out = render_rays(run.field, sub, RenderConfig(sampler=sampler, shading=run.cfg.shading, deferred=True),
+        out = render_rays(run.field, rays[s:s + chunk],
+                          RenderConfig(sampler=sampler, shading=run.cfg.shading, deferred=True),
                           RenderInputs(run.occupancy, run.l_env, run.background, dars=dars),
-                          None if ray_w is None else ray_w[s:s + chunk])
+                          fine_budgets=None if budgets is None else budgets[s:s + chunk])
         total.append(out.samples_per_ray.float().cpu())
         fine.append(out.fine_counts.float().cpu())
     return {"samples": torch.cat(total).reshape(h, w), "fine": torch.cat(fine).reshape(h, w)}

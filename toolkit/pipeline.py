@@ -245,6 +245,7 @@ def render_rays(
     ray_weights: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
     outputs_hook: Callable[[FieldOutputs], FieldOutputs] | None = None,
+    fine_budgets: torch.Tensor | None = None,
 ) -> RenderOutputs:
     """Render a batch of rays (differentiable w.r.t. the field, ``l_env`` and the background).
 
@@ -267,6 +268,9 @@ def render_rays(
         outputs_hook: optional callable ``FieldOutputs -> FieldOutputs`` applied to every field query before
             shading (relighting and material edits, :mod:`toolkit.relight`); when deferred it sees the per-ray
             head outputs.
+        fine_budgets: int64 [R] fine samples per ray, computed by the caller (``ray_weights`` is then not used):
+            lets one image be rendered in chunks with the DARS budgets shared over the whole image
+            (:func:`toolkit.evaluate.training_sample_counts`). Rays without an occupied coarse sample get none.
     """
     sampler, shading, shading_cfg, deferred = cfg.sampler, cfg.shading, cfg.shading_cfg, cfg.deferred
     occupancy, l_env, background, dars = inputs.occupancy, inputs.l_env, inputs.background, inputs.dars
@@ -297,7 +301,9 @@ def render_rays(
             pdf = (1 - sampler.mix) * pdf / ps.clamp_min(1e-12) + sampler.mix * wbar / pw.clamp_min(1e-12)
         idx = torch.nonzero(has).squeeze(-1)
         if idx.numel():
-            if sampler.dars and ray_weights is not None:
+            if fine_budgets is not None:
+                counts[idx] = fine_budgets.to(dev)[idx]
+            elif sampler.dars and ray_weights is not None:
                 counts[idx] = ray_budgets(ray_weights[idx], sampler.n_fine, sampler.tau, sampler.budget_min,
                                           sampler.budget_max)
             else:
