@@ -113,21 +113,28 @@ def hash_grid_encode_torch(x: torch.Tensor, table: torch.Tensor, resolutions: to
     c0 = torch.minimum(pos.floor(), (res_f - 1)[None, :, None])
     f = pos - c0
     c0 = c0.long()
-    offs = torch.tensor([[k & 1, (k >> 1) & 1, (k >> 2) & 1] for k in range(8)], device=x.device)
-    c = c0[:, :, None, :] + offs[None, None]  # [N, L, 8, 3]
-    r1 = (res + 1)[None, :, None]
-    dense_idx = c[..., 0] + c[..., 1] * r1 + c[..., 2] * r1 * r1
-    hash_idx = torch.remainder(c[..., 0] + c[..., 1] * _PRIME_Y + c[..., 2] * _PRIME_Z, table_size)
-    is_dense = ((res + 1) ** 3 <= table_size)[None, :, None]
+    # A corner's row is linear in its coordinates, so it is the lower corner's row plus a per-level offset of the
+    # corner (ONNX Runtime spends its time on [N, L, 8, ...] tensors: build as few of them as possible).
+    # Multipliers of (cx, cy, cz): (1, R+1, (R+1)^2) on a dense level, (1, PRIME_Y, PRIME_Z) on a hashed one.
+    r1 = res + 1
+    dense = r1 * r1 * r1 <= table_size  # [L]
+    mult = torch.stack([torch.ones_like(r1), torch.where(dense, r1, torch.full_like(r1, _PRIME_Y)),
+                        torch.where(dense, r1 * r1, torch.full_like(r1, _PRIME_Z))], -1)  # [L, 3]
+    offs = torch.tensor([[k & 1, (k >> 1) & 1, (k >> 2) & 1] for k in range(8)], device=x.device)  # [8, 3]
+    corner = (offs[None] * mult[:, None]).sum(-1)  # [L, 8]
+    lin = (c0 * mult[None]).sum(-1)[:, :, None] + corner[None]  # [N, L, 8]
+    # mod T hashes a hashed level and leaves a dense one as it is (its rows end at (R+1)^3 - 1 < T): no Where
     level_off = (torch.arange(n_levels, device=x.device) * table_size)[None, :, None]
-    rows = torch.where(is_dense, dense_idx, hash_idx) + level_off  # [N, L, 8]
-    # trilinear weights w_k = prod_d ((1 - f_d) + o_kd (2 f_d - 1)): plain Mul/Add (a broadcast Where is ~1.45x
-    # slower in ONNX Runtime and gives the same values)
-    o = offs.to(f.dtype)[None, None]  # [1, 1, 8, 3]
-    fd = f[:, :, None, :]
-    w = ((1.0 - fd) + o * (2.0 * fd - 1.0)).prod(-1)  # [N, L, 8]
-    gathered = table[rows.reshape(-1)].reshape(x.shape[0], n_levels, 8, feats)
-    return (gathered * w[..., None]).sum(2).reshape(x.shape[0], n_levels * feats)
+    rows = torch.remainder(lin, table_size) + level_off  # [N, L, 8]
+    # trilinear weights: the outer product of each axis's (1 - f, f), corner k = x + 2 y + 4 z
+    a = torch.stack([1.0 - f, f], -1)  # [N, L, 3, 2]
+    w = (a[:, :, 2, :, None, None] * a[:, :, 1, None, :, None] * a[:, :, 0, None, None, :]).reshape(-1, 8, 1)
+    gathered = table[rows.reshape(-1)].reshape(-1, 8, feats)  # [N L, 8, F]
+    # Σ_k w_k g_k as a product with 8 stacked identities (in ONNX Runtime a MatMul, faster than a ReduceSum over
+    # the corner axis; bench/bench_onnx.py)
+    weighted = (gathered * w).reshape(-1, 8 * feats)
+    corner_sum = torch.eye(feats, dtype=weighted.dtype, device=x.device).repeat(8, 1)  # [8 F, F]
+    return (weighted @ corner_sum).reshape(x.shape[0], n_levels * feats)
 
 
 # ------------------------------------------------------------------ compiled CPU kernel
