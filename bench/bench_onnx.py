@@ -8,8 +8,9 @@ Measures, for each thread count (``--threads 1,2``):
   torch eager with the plain-torch encoding (the code the graph is traced from), and ONNX Runtime fp32 / fp16 /
   int8 (``field.onnx``, ``field_fp16.onnx``, ``field_int8.onnx``);
 * **view render** — one full test view (the sample's are 128 x 128) with the run's render sampler, DARS off:
-  :meth:`toolkit.train.run.Run.render` (``deferred=False``) vs :func:`export.infer.render_view` (numpy + ONNX
-  Runtime), plus each variant's PSNR against the ground truth and against the fp32 render.
+  :meth:`toolkit.train.run.Run.render` vs :func:`export.infer.render_view` (numpy + ONNX Runtime), both with the
+  run's shading (once per ray or at every sample, as it trained), plus each variant's PSNR against the ground truth
+  and against the fp32 render.
 
 Ratios are against torch eager (kernel) at the same thread count. Wall times are medians of ``--repeats``
 runs after one warm-up. The machine is shared: run with ``--threads 1`` there.
@@ -115,7 +116,7 @@ def main(argv=None) -> int:
         if not args.no_view:
             t0 = time.perf_counter()
             with torch.no_grad():
-                o = run.render(sc.cameras, index, sampler=sampler, deferred=False)
+                o = run.render(sc.cameras, index, sampler=sampler)  # the run's own shading: per ray or per sample
             view_torch = time.perf_counter() - t0
             torch_rgb = o.rgb.numpy()
         base = {"threads": nt, "points": args.points}
