@@ -272,6 +272,11 @@ def test_reduced_precision_variants_measured(bundle):
     assert table.data_type == onnx.TensorProto.FLOAT16
     users = [n for n in m.graph.node if "points" in n.input]
     assert users and all(n.op_type != "Cast" for n in users), "points must reach the encoding in float32"
+    # int8 quantises the MLPs' MatMuls, not the hash grid's corner sum (a MatMul with stacked identities)
+    m8 = onnx.load(str(bundle["out"] / "field_int8.onnx"))
+    grid_mm = [n for n in m8.graph.node if n.op_type == "MatMul" and "grid" in n.name.split("/")]
+    assert len(grid_mm) == 1, [n.name for n in m8.graph.node if "grid" in n.name]
+    assert any(n.op_type == "MatMulInteger" for n in m8.graph.node), "the MLP layers are quantised"
 
 
 def test_segmenter_and_light_networks(bundle):
