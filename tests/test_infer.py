@@ -290,6 +290,7 @@ def test_cli_infer_camera_segment_light_and_errors(bundle, tmp_path):
     d = json.loads(r.stdout)
     assert (tmp_path / "v.png").is_file() and (tmp_path / "v_albedo.png").is_file() and "semantic" in d["files"]
     assert abs(d["psnr"] - bundle["meta"]["parity"]["render"]["psnr_onnx"]) < 0.05
+    assert "infer" in r.stderr and "ray" in r.stderr, "a progress bar over the rays on stderr"
     photo = str(SAMPLE / "test" / "r_001.png")
     r = subprocess.run(exe + ["--segment", photo, "--out", str(tmp_path / "seg"), "--json"], capture_output=True,
                        text=True, cwd=ROOT, env=_env(), timeout=300)

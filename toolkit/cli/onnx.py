@@ -199,8 +199,19 @@ def _infer_camera(args, threads) -> int:
     sh = _read_sh(args.sh)
     model = infer.load_model(args.dir, args.precision, threads)  # checks DIR before the scene is loaded
     cam, scene, i = _camera(args.camera)
+    from tqdm import tqdm
+
+    bar = tqdm(total=int(cam.width) * int(cam.height), desc="infer", unit="ray", unit_scale=True, file=sys.stderr,
+               leave=False)
+
+    def progress(done: int, total: int) -> None:
+        bar.update(done - bar.n)
+
     t0 = time.perf_counter()
-    outs = infer.render_view(model, cam, sh=sh)
+    try:
+        outs = infer.render_view(model, cam, sh=sh, progress=progress)
+    finally:
+        bar.close()
     seconds = time.perf_counter() - t0
     imgs = render_output_images(outs, srgb=bool(model.metadata.get("srgb", True)))
     written = {}
