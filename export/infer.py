@@ -59,10 +59,12 @@ from toolkit.pinhole import PinholeCamera
 __all__ = ["InferError", "PinholeCamera", "FieldModel", "RenderSettings", "SceneSpace", "load_model", "render_view",
            "render_rays", "generate_camera_rays", "contract", "box_radius", "contracted_edges",
            "camera_from_transforms", "poses_for_photos", "read_photo", "infer_segment", "infer_light",
-           "camera_heading_np", "FIELD_FILES", "REQUIRED_FILES"]
+           "camera_heading_np", "geometry_session", "FIELD_FILES", "GEOMETRY_OUTPUTS", "REQUIRED_FILES"]
 
 FIELD_FILES = {"fp32": "field.onnx", "fp16": "field_fp16.onnx", "int8": "field_int8.onnx"}
 """Field graph file per precision."""
+GEOMETRY_OUTPUTS = ("density", "feature")
+"""What a render shaded once per ray asks the field at each sample (:func:`geometry_session`)."""
 REQUIRED_FILES = ("metadata.json", "field.onnx", "occupancy.npz", "background.npz")
 """What a directory needs to render (``export_onnx_models`` writes all of them)."""
 SEMANTIC_CLASSES = ("painting", "frame", "display", "base", "wall", "floor", "other")
@@ -235,10 +237,13 @@ class FieldModel:
     """
 
     def __init__(self, path: Path, metadata: dict, session, precision: str, occupancy: dict, background: dict,
-                 heads_session=None):
+                 heads_session=None, geometry_session=None):
         self.path = path
         self.heads_session = heads_session
         """``heads.onnx`` of a run shaded once per ray (``deferred``), else None."""
+        self.geometry_session = geometry_session
+        """The field graph cut to ``points -> density, feature`` (:func:`geometry_session`), or None: what a
+        ``deferred`` render asks per sample, without the heads ONNX Runtime would otherwise run there too."""
         self.metadata = metadata
         self.session = session
         self.precision = precision
@@ -282,6 +287,9 @@ class FieldModel:
         view_dirs = np.ascontiguousarray(view_dirs, np.float32)
         if points.ndim != 2 or points.shape[1] != 3 or view_dirs.shape != points.shape:
             raise InferError(f"points {list(points.shape)} and view_dirs {list(view_dirs.shape)} must both be [N, 3]")
+        if self.geometry_session is not None and outputs is not None and set(outputs) <= set(GEOMETRY_OUTPUTS):
+            return _run_chunked(self.geometry_session, self.metadata["field"]["outputs"], {"points": points},
+                                self.sh if sh is None else sh, chunk, outputs)
         return _run_chunked(self.session, self.metadata["field"]["outputs"], {"points": points, "view_dirs": view_dirs},
                             self.sh if sh is None else sh, chunk, outputs)
 
@@ -370,8 +378,9 @@ def _check_dir(path: Path, needed: Sequence[str]) -> None:
                          "re-run `dars export-onnx RUN --out DIR`")
 
 
-def make_session(path: str | os.PathLike, threads: int | None = None):
-    """An ONNX Runtime CPU session with ``threads`` intra-op threads (None: ORT's default)."""
+def make_session(path: str | os.PathLike | bytes, threads: int | None = None):
+    """An ONNX Runtime CPU session with ``threads`` intra-op threads (None: ORT's default); ``path`` may also be a
+    serialised model (bytes)."""
     import onnxruntime as ort
 
     opts = ort.SessionOptions()
@@ -380,9 +389,32 @@ def make_session(path: str | os.PathLike, threads: int | None = None):
         opts.inter_op_num_threads = 1
     opts.log_severity_level = 3
     try:
-        return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(path if isinstance(path, bytes) else str(path), sess_options=opts,
+                                    providers=["CPUExecutionProvider"])
     except Exception as e:  # onnxruntime raises its own exception types
-        raise InferError(f"ONNX Runtime could not load {path}: {e}") from e
+        what = "a serialised model" if isinstance(path, bytes) else path
+        raise InferError(f"ONNX Runtime could not load {what}: {e}") from e
+
+
+def geometry_session(path: str | os.PathLike, threads: int | None = None):
+    """A session of the field graph at ``path`` cut to ``points -> density, feature`` (:data:`GEOMETRY_OUTPUTS`),
+    or None where the ``onnx`` package is not installed or the graph does not cut there.
+
+    ONNX Runtime runs a whole graph whatever outputs are asked for, so a render shaded once per ray, which needs
+    only density and feature at its samples, would also run every head there. The cut graph is the same nodes, so it
+    gives the same values; it is built in memory from the shipped file, so the bundle carries one copy of the hash
+    table. Without ``onnx`` (a device with ONNX Runtime alone) the renderer uses the whole graph, slower only.
+    """
+    try:
+        import onnx
+        from onnx.utils import Extractor
+    except ImportError:
+        return None
+    try:
+        cut = Extractor(onnx.load(str(path))).extract_model(["points"], list(GEOMETRY_OUTPUTS))
+        return make_session(cut.SerializeToString(), threads)
+    except Exception:  # noqa: BLE001 - a graph that does not cut there (an older export): use the whole graph
+        return None
 
 
 def load_model(path: str | os.PathLike, precision: str = "fp32", threads: int | None = None) -> FieldModel:
@@ -433,7 +465,8 @@ def load_model(path: str | os.PathLike, precision: str = "fp32", threads: int | 
         name = metadata["heads"].get("file", "heads.onnx")
         _check_dir(path, [name])
         heads = make_session(path / name, threads)
-    return FieldModel(path, metadata, session, precision, occupancy, background, heads)
+    geometry = geometry_session(path / FIELD_FILES[precision], threads) if heads is not None else None
+    return FieldModel(path, metadata, session, precision, occupancy, background, heads, geometry)
 
 
 def _load_npz(path: Path):
@@ -688,7 +721,7 @@ def render_rays(model: FieldModel, origins: np.ndarray, directions: np.ndarray, 
     t0c, t1c = starts[ray_c, k_c], ends[ray_c, k_c]
     tmid_c = f32(0.5) * (t0c + t1c)
     per_ray = model.deferred  # a run shaded once per ray: density and feature at the samples, heads per ray
-    want = ("density", "feature") if per_ray else None
+    want = GEOMETRY_OUTPUTS if per_ray else None
     out_c = model.query(origins[ray_c] + tmid_c[:, None] * directions[ray_c], directions[ray_c], sh, outputs=want)
     counts = np.zeros(R, np.int64)
     if st.n_fine > 0:

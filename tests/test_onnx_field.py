@@ -196,6 +196,17 @@ def test_deferred_run_bundle_renders_per_ray(deferred_export):
     got = render_view(m, PinholeCamera.from_cameras(sc.cameras, 0))["rgb"]
     ref = run.render(sc.cameras, 0).rgb.numpy()  # the run's own (deferred) render
     assert np.abs(got - ref).max() < 1e-3 < np.abs(per_sample - ref).max()
+    # per sample, a deferred render asks the field graph cut to density and feature: the same values, and the same
+    # render, as the whole graph
+    assert m.geometry_session is not None and len(m.geometry_session.get_outputs()) == 2
+    pts = np.random.default_rng(0).uniform(-1.0, 1.0, (3000, 3)).astype(np.float32)
+    dirs = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    cut = m.query(pts, dirs, outputs=("density", "feature"))
+    whole = m.query(pts, dirs)
+    for k in ("density", "feature"):
+        assert np.allclose(cut[k], whole[k], rtol=1e-5, atol=1e-6), k
+    m.geometry_session = None
+    assert np.allclose(render_view(m, PinholeCamera.from_cameras(sc.cameras, 0))["rgb"], got, atol=1e-5)
     assert rep.variants["fp16"]["status"] == "exported" and rep.variants["fp16"]["psnr_vs_fp32"] > 30.0
 
 
