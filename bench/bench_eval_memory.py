@@ -20,15 +20,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_memory import GB, ROOT, SHARED, baseline_code  # noqa: E402
+from bench_memory import GB, ROOT, SHARED, baseline_code, run_child  # noqa: E402
 
 _CHILD = r"""
 import json, resource, sys, time
@@ -61,19 +59,7 @@ print("RESULT " + json.dumps(out))
 
 
 def measure(code: Path, run_dir: Path, limit: int, threads: int, maps: Path) -> dict:
-    env = dict(os.environ, OMP_NUM_THREADS=str(threads), PYTHONPATH=str(code))
-    if code != ROOT:  # the hash-grid kernel is built per source path: the baseline gets its own build folder
-        env["DARS_EXT_DIR"] = str(code / "_ext")
-    t = time.perf_counter()
-    p = subprocess.run([sys.executable, "-c", _CHILD, str(code), str(run_dir), str(limit), str(threads), str(maps)],
-                       capture_output=True, text=True, env=env, cwd=str(code))
-    lines = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
-    if p.returncode != 0 or not lines:
-        tail = (p.stderr or p.stdout).strip().splitlines()[-5:]
-        return {"error": f"exit {p.returncode}: " + " | ".join(tail)}
-    r = json.loads(lines[-1][7:])
-    r["wall_s"] = time.perf_counter() - t
-    return r
+    return run_child(_CHILD, code, [str(code), str(run_dir), str(limit), str(threads), str(maps)], threads)
 
 
 def main() -> int:

@@ -134,13 +134,15 @@ def baseline_code(ref: str, work: Path) -> Path | None:
     return dst
 
 
-def measure(code: Path, scene: Path, split: str, downscale: int, steps: int, threads: int) -> dict:
+def run_child(child: str, code: Path, argv: list[str], threads: int) -> dict:
+    """Run the script ``child`` in a fresh Python process on the code at ``code`` (``argv`` after it), parse its last
+    ``RESULT {json}`` line and add the wall time as ``wall_s``; ``{"error": ...}`` with the output's tail when it
+    fails. A fresh process makes ``ru_maxrss`` its own peak."""
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), PYTHONPATH=str(code))
     if code != ROOT:  # the hash-grid kernel is built per source path: the baseline gets its own build folder
         env["DARS_EXT_DIR"] = str(code / "_ext")
     t = time.perf_counter()
-    p = subprocess.run([sys.executable, "-c", _CHILD, str(code), str(scene), split, str(downscale), str(steps),
-                        str(threads)], capture_output=True, text=True, env=env, cwd=str(code))
+    p = subprocess.run([sys.executable, "-c", child, *argv], capture_output=True, text=True, env=env, cwd=str(code))
     lines = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
     if p.returncode != 0 or not lines:
         tail = (p.stderr or p.stdout).strip().splitlines()[-5:]
@@ -148,6 +150,10 @@ def measure(code: Path, scene: Path, split: str, downscale: int, steps: int, thr
     r = json.loads(lines[-1][7:])
     r["wall_s"] = time.perf_counter() - t
     return r
+
+
+def measure(code: Path, scene: Path, split: str, downscale: int, steps: int, threads: int) -> dict:
+    return run_child(_CHILD, code, [str(code), str(scene), split, str(downscale), str(steps), str(threads)], threads)
 
 
 def _slope(rows: list[dict]) -> float | None:
