@@ -180,9 +180,8 @@ def contracted_edges(origins: np.ndarray, directions: np.ndarray, near: np.ndarr
     L = np.concatenate([np.zeros((R, 1), f32), np.cumsum(seg.astype(np.float64), -1).astype(f32)], -1)
     total = np.maximum(L[:, -1:], f32(1e-12))
     target = _torch_linspace01(n)[None] * total  # [R, n+1]
-    k = np.zeros(target.shape, np.int64)  # searchsorted(L, target, right=True)
-    for j in range(K + 1):
-        k += L[:, j:j + 1] <= target
+    rows = np.repeat(np.arange(R), n + 1)
+    k = _row_searchsorted(L, rows, target.ravel()).reshape(R, n + 1)  # searchsorted(L, target, right=True)
     k = np.clip(k, 1, K) - 1
     L0, L1 = np.take_along_axis(L, k, 1), np.take_along_axis(L, k + 1, 1)
     t0, t1 = np.take_along_axis(t, k, 1), np.take_along_axis(t, k + 1, 1)
@@ -270,7 +269,8 @@ class FieldModel:
         return self.heads_session is not None
 
     def query(self, points: np.ndarray, view_dirs: np.ndarray, sh: np.ndarray | None = None,
-              chunk: int = 65536, outputs: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+              chunk: int = 65536, outputs: Sequence[str] | None = None,
+              out: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
         """Run the field graph on points (chunked).
 
         Args:
@@ -279,6 +279,7 @@ class FieldModel:
             sh: float [9, 3] global SH light (default: the run's ``l_env``); ignored by a ``radiance`` field.
             chunk: points per ONNX Runtime call.
             outputs: the outputs to return (default: all).
+            out: float32 arrays [N, ...] per output to write into (returned), e.g. views of one larger buffer.
 
         Returns:
             ``{output name: float32 array [N, ...]}`` (see ``metadata["field"]["outputs"]``).
@@ -289,9 +290,16 @@ class FieldModel:
             raise InferError(f"points {list(points.shape)} and view_dirs {list(view_dirs.shape)} must both be [N, 3]")
         if self.geometry_session is not None and outputs is not None and set(outputs) <= set(GEOMETRY_OUTPUTS):
             return _run_chunked(self.geometry_session, self.metadata["field"]["outputs"], {"points": points},
-                                self.sh if sh is None else sh, chunk, outputs)
+                                self.sh if sh is None else sh, chunk, outputs, out)
         return _run_chunked(self.session, self.metadata["field"]["outputs"], {"points": points, "view_dirs": view_dirs},
-                            self.sh if sh is None else sh, chunk, outputs)
+                            self.sh if sh is None else sh, chunk, outputs, out)
+
+    def output_buffers(self, n: int, outputs: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+        """Uninitialised float32 arrays [n, ...] for the field's ``outputs`` (default: all), for :meth:`query`'s
+        ``out``."""
+        shapes = self.metadata["field"]["outputs"]
+        names = [o.name for o in self.session.get_outputs()] if outputs is None else list(outputs)
+        return {k: np.empty([n] + [int(d) for d in shapes[k][1:]], np.float32) for k in names}
 
     def query_heads(self, features: np.ndarray, view_dirs: np.ndarray, sh: np.ndarray | None = None,
                     chunk: int = 65536) -> dict[str, np.ndarray]:
@@ -344,15 +352,22 @@ class FieldModel:
 
 
 def _run_chunked(session, shapes: dict, inputs: dict[str, np.ndarray], sh: np.ndarray, chunk: int,
-                 outputs: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+                 outputs: Sequence[str] | None = None, out: dict[str, np.ndarray] | None = None
+                 ) -> dict[str, np.ndarray]:
     """Run an ONNX session on row-chunked ``inputs`` (float [N, ...] each, the same N), feeding ``sh`` [9, 3] when
-    the graph takes it. ``shapes``: the graph's output shapes (``metadata.json``), for an empty batch."""
+    the graph takes it. ``shapes``: the graph's output shapes (``metadata.json``), for an empty batch. ``out``:
+    float32 arrays [N, ...] per output to fill (returned) instead of new ones."""
     names = [o.name for o in session.get_outputs()] if outputs is None else list(outputs)
     inputs = {k: np.ascontiguousarray(v, np.float32) for k, v in inputs.items()}
     n = next(iter(inputs.values())).shape[0]
     bad = {k: list(v.shape) for k, v in inputs.items() if v.ndim != 2 or v.shape[0] != n}
     if bad:
         raise InferError(f"inputs {bad} must be 2-D with one row each")
+    if out is not None:
+        bad = {k: list(out[k].shape) if k in out else None for k in names
+               if k not in out or out[k].shape[0] != n or out[k].dtype != np.float32}
+        if bad:
+            raise InferError(f"out {bad} must hold float32 arrays of {n} rows for every output")
     if n == 0:
         return {k: np.zeros([0] + [int(d) for d in shapes[k][1:]], np.float32) for k in names}
     feed_sh = np.ascontiguousarray(sh, np.float32)
@@ -365,7 +380,12 @@ def _run_chunked(session, shapes: dict, inputs: dict[str, np.ndarray], sh: np.nd
         if takes_sh:
             feed["sh"] = feed_sh
         for k, v in zip(names, session.run(names, feed)):
-            parts[k].append(v)
+            if out is None:
+                parts[k].append(v)
+            else:
+                out[k][i:i + v.shape[0]] = v
+    if out is not None:
+        return {k: out[k] for k in names}
     return {k: np.concatenate(v).astype(np.float32, copy=False) for k, v in parts.items()}
 
 
@@ -620,13 +640,53 @@ def render_weights(density: np.ndarray, deltas: np.ndarray, ray_indices: np.ndar
     return trans * alphas
 
 
-def _accumulate(weights: np.ndarray, values: np.ndarray | None, ray_indices: np.ndarray, n_rays: int) -> np.ndarray:
-    """float32 [R, C] Σ w v per ray ([R, 1] for ``values=None``)."""
-    src = weights[:, None] if values is None else weights[:, None] * values.reshape(values.shape[0], -1)
-    out = np.empty((n_rays, src.shape[1]), np.float32)
-    for c in range(src.shape[1]):
+def _accumulate(weights: np.ndarray, values: np.ndarray | None, ray_indices: np.ndarray, n_rays: int,
+                rows: np.ndarray | None = None) -> np.ndarray:
+    """float32 [R, C] Σ w v per ray ([R, 1] for ``values=None``); ``values[rows[i]]`` is sample i's value when
+    ``rows`` is given (the samples' order in ``values``, which then need not be gathered into sample order).
+
+    With scipy, one sparse product (rays × samples, the weights as its entries): float32 sums in sample order, as
+    torch's ``index_add`` takes them in :func:`toolkit.render.accumulate_along_rays`, and no [S, C] temporary (a
+    feature has tens of channels; ~40× faster than the fallback on 64). Without scipy (``export.infer`` needs only
+    numpy and onnxruntime), ``np.bincount`` channel by channel, in float64."""
+    S = weights.shape[0]
+    vals = (np.ones((S, 1), np.float32) if values is None
+            else values.reshape(values.shape[0], int(np.prod(values.shape[1:], dtype=np.int64))))
+    if values is None:
+        rows = None
+    C = vals.shape[1]
+    try:
+        from scipy.sparse import csr_matrix
+    except ImportError:
+        csr_matrix = None
+    if csr_matrix is not None and S > 0:
+        ri = np.asarray(ray_indices, np.int64)
+        order = np.arange(S) if bool((ri[1:] >= ri[:-1]).all()) else np.argsort(ri, kind="stable")
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(ri, minlength=n_rays))])
+        cols = order if rows is None else np.asarray(rows, np.int64)[order]
+        mat = csr_matrix((np.asarray(weights, np.float32)[order], cols, indptr), shape=(n_rays, vals.shape[0]))
+        return np.asarray(mat @ np.asarray(vals, np.float32), np.float32).reshape(n_rays, C)
+    src = weights[:, None] * (vals if rows is None else vals[rows])
+    out = np.empty((n_rays, C), np.float32)
+    for c in range(C):
         out[:, c] = np.bincount(ray_indices, weights=src[:, c], minlength=n_rays)
     return out
+
+
+def _sort_keys(x: np.ndarray) -> np.ndarray:
+    """int64 keys of float32 values in the same order as the values (IEEE bits, negatives flipped; −0 as +0)."""
+    u = (np.asarray(x, np.float32) + np.float32(0.0)).view(np.uint32).astype(np.int64)
+    return np.where(u >= 0x80000000, 0xFFFFFFFF - u, u + 0x80000000)
+
+
+def _row_searchsorted(table: np.ndarray, rows: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """int64 count of ``table[rows[i]] <= values[i]`` for each i: ``np.searchsorted(..., side="right")`` on each
+    row of ``table`` [R, K] (float32, every row non-decreasing), in one call: the flattened table's keys are
+    (row, value) pairs packed into one int64, so the comparisons are exact."""
+    R, K = table.shape
+    rows = np.asarray(rows, np.int64)
+    flat = (np.arange(R, dtype=np.int64)[:, None] << 32 | _sort_keys(table)).ravel()
+    return np.searchsorted(flat, rows << 32 | _sort_keys(values), side="right") - rows * K
 
 
 def _sample_fine(edges: np.ndarray, pdf: np.ndarray, counts: np.ndarray, return_strata: bool = False):
@@ -650,12 +710,9 @@ def _sample_fine(edges: np.ndarray, pdf: np.ndarray, counts: np.ndarray, return_
     ray_idx = np.repeat(np.arange(R), counts)
     j = np.arange(total) - _ray_starts(ray_idx, R)[ray_idx]
     u = np.clip((j.astype(f32) + f32(0.5)) / counts[ray_idx].astype(f32), f32(0.0), f32(1.0 - 1e-6))
-    rows = cdf[ray_idx]
-    k = np.clip((rows <= u[:, None]).sum(-1), 1, n) - 1  # searchsorted(right=True)
-    ar = np.arange(total)
-    c0, c1 = rows[ar, k], rows[ar, k + 1]
-    e = edges[ray_idx]
-    e0, e1 = e[ar, k], e[ar, k + 1]
+    k = np.clip(_row_searchsorted(cdf, ray_idx, u), 1, n) - 1  # searchsorted(right=True)
+    c0, c1 = cdf[ray_idx, k], cdf[ray_idx, k + 1]
+    e0, e1 = edges[ray_idx, k], edges[ray_idx, k + 1]
     frac = np.clip((u - c0) / np.maximum(c1 - c0, f32(1e-12)), f32(0.0), f32(1.0))
     t = (e0 + frac * (e1 - e0)).astype(f32)
     return (t, ray_idx, k) if return_strata else (t, ray_idx)
@@ -722,56 +779,65 @@ def render_rays(model: FieldModel, origins: np.ndarray, directions: np.ndarray, 
     tmid_c = f32(0.5) * (t0c + t1c)
     per_ray = model.deferred  # a run shaded once per ray: density and feature at the samples, heads per ray
     want = GEOMETRY_OUTPUTS if per_ray else None
-    out_c = model.query(origins[ray_c] + tmid_c[:, None] * directions[ray_c], directions[ray_c], sh, outputs=want)
     counts = np.zeros(R, np.int64)
+    if st.n_fine > 0:
+        counts[np.unique(ray_c)] = st.n_fine
+    # one buffer per output for every sample, coarse then fine (query order); ``order`` below merges them
+    S_c = ray_c.shape[0]
+    outs = model.output_buffers(S_c + int(counts.sum()), want)
+    out_c = model.query(origins[ray_c] + tmid_c[:, None] * directions[ray_c], directions[ray_c], sh, outputs=want,
+                        out={k: v[:S_c] for k, v in outs.items()})
     if st.n_fine > 0:
         w_c = render_weights(out_c["density"], t1c - t0c, ray_c, R)
         pdf = np.zeros((R, n), f32)
         pdf[ray_c, k_c] = w_c
-        counts[np.unique(ray_c)] = st.n_fine
         t_f, ray_f, k_f = _sample_fine(edges, pdf, counts, return_strata=True)
     else:
         t_f, ray_f, k_f = np.zeros(0, f32), np.zeros(0, np.int64), np.zeros(0, np.int64)
-    out_f = model.query(origins[ray_f] + t_f[:, None] * directions[ray_f], directions[ray_f], sh, outputs=want)
+    model.query(origins[ray_f] + t_f[:, None] * directions[ray_f], directions[ray_f], sh, outputs=want,
+                out={k: v[S_c:] for k, v in outs.items()})
     max_delta = (np.maximum(far, near) - near) / f32(n)
     sample_delta = None
     if space.contraction:  # strata of unequal length: each sample spans at most its own stratum
         sample_delta = np.concatenate([t1c - t0c, edges[ray_f, k_f + 1] - edges[ray_f, k_f]]).astype(f32)
     s0, s1, ri, order = _merge(tmid_c, ray_c, t_f, ray_f, max_delta, near, far, sample_delta)
-    outs = {k: np.concatenate([out_c[k], out_f[k]])[order] for k in out_c}
-    weights = render_weights(outs["density"], s1 - s0, ri, R)
+    weights = render_weights(outs["density"][order], s1 - s0, ri, R)
     opacity = _accumulate(weights, None, ri, R)
     safe = np.maximum(opacity, f32(1e-6))
     tm = f32(0.5) * (s0 + s1)
     depth = (_accumulate(weights, tm[:, None], ri, R)[:, 0] / safe[:, 0]) * z_scale
     bg = model.background_radiance(directions)
     if per_ray:
-        return _shade_rays(model, outs["feature"], weights, ri, opacity, depth, directions, bg, sh)
-    colour = outs["colour"] if model.shading == "pbr" else outs["radiance"]
-    res = {"rgb": _accumulate(weights, colour, ri, R) + (f32(1.0) - opacity) * bg, "depth": depth,
-           "opacity": opacity[:, 0]}
-    nrm = _accumulate(weights, outs["normal"], ri, R)
+        return _shade_rays(model, outs["feature"], weights, ri, opacity, depth, directions, bg, sh, rows=order)
+
+    def acc(name):
+        return _accumulate(weights, outs[name], ri, R, rows=order)
+
+    res = {"rgb": acc("colour" if model.shading == "pbr" else "radiance") + (f32(1.0) - opacity) * bg,
+           "depth": depth, "opacity": opacity[:, 0]}
+    nrm = acc("normal")
     res["normal"] = nrm / np.maximum(np.sqrt((nrm * nrm).sum(-1, keepdims=True)), f32(1e-6))
-    res["semantic_logits"] = _accumulate(weights, outs["semantic_logits"], ri, R) / safe  # as torch: Σ w l / Σ w
+    res["semantic_logits"] = acc("semantic_logits") / safe  # as torch: Σ w l / Σ w
     if model.shading == "pbr":
-        res["albedo"] = _accumulate(weights, outs["albedo"], ri, R) / safe
-        res["roughness"] = (_accumulate(weights, outs["roughness"], ri, R) / safe)[:, 0]
-        res["metallic"] = (_accumulate(weights, outs["metallic"], ri, R) / safe)[:, 0]
-        res["diffuse"] = _accumulate(weights, outs["diffuse"], ri, R)
-        res["specular"] = _accumulate(weights, outs["specular"], ri, R)
+        res["albedo"] = acc("albedo") / safe
+        res["roughness"] = (acc("roughness") / safe)[:, 0]
+        res["metallic"] = (acc("metallic") / safe)[:, 0]
+        res["diffuse"] = acc("diffuse")
+        res["specular"] = acc("specular")
     res["samples"] = np.bincount(ri, minlength=R).astype(np.float32)
     return {k: v.astype(np.float32, copy=False) for k, v in res.items()}
 
 
 def _shade_rays(model: FieldModel, features: np.ndarray, weights: np.ndarray, ri: np.ndarray, opacity: np.ndarray,
-                depth: np.ndarray, directions: np.ndarray, bg: np.ndarray, sh: np.ndarray | None
-                ) -> dict[str, np.ndarray]:
+                depth: np.ndarray, directions: np.ndarray, bg: np.ndarray, sh: np.ndarray | None,
+                rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The outputs of :func:`render_rays` for a run shaded once per ray (``deferred``), as
     :func:`toolkit.pipeline.render_rays` computes them: the heads on h̄ = Σ w h / Σ w, rgb = opacity · colour +
-    (1 − opacity) · background, diffuse and specular premultiplied by opacity."""
+    (1 − opacity) · background, diffuse and specular premultiplied by opacity. ``features[rows[i]]`` is sample i's
+    (:func:`_accumulate`)."""
     f32 = np.float32
     R = directions.shape[0]
-    hbar = _accumulate(weights, features, ri, R) / np.maximum(opacity, f32(1e-6))
+    hbar = _accumulate(weights, features, ri, R, rows=rows) / np.maximum(opacity, f32(1e-6))
     heads = model.query_heads(hbar, directions, sh)
     colour = heads["colour"] if model.shading == "pbr" else heads["radiance"]
     res = {"rgb": opacity * colour + (f32(1.0) - opacity) * bg, "depth": depth, "opacity": opacity[:, 0],

@@ -210,6 +210,74 @@ def test_sampler_and_compositing_match_torch():
     assert np.allclose(s0, ps.t_starts.numpy(), atol=1e-6) and np.allclose(s1, ps.t_ends.numpy(), atol=1e-6)
 
 
+def test_accumulation_is_torchs_bit_for_bit(monkeypatch):
+    """Σ w v per ray: the same float32 sums in the same order as toolkit.render.accumulate_along_rays (index_add),
+    with the values in query order (``rows``) and with samples out of ray order; without scipy, float64 bincounts
+    that agree to float32 rounding."""
+    from toolkit.render import accumulate_along_rays
+
+    rng = np.random.default_rng(3)
+    R, S = 300, 9000
+    ri = np.sort(rng.integers(0, R, S))
+    ri[ri == 7] = 8  # a ray with no sample
+    w = rng.random(S).astype(np.float32)
+    for C in (1, 3, 31):
+        v = rng.standard_normal((S, C)).astype(np.float32)
+        ref = accumulate_along_rays(torch.from_numpy(w), torch.from_numpy(v), torch.from_numpy(ri), R).numpy()
+        got = infer._accumulate(w, v, ri, R)
+        assert got.dtype == np.float32 and got.shape == (R, C) and np.array_equal(got, ref), C
+        assert not got[7].any()
+        perm = rng.permutation(S)  # values stored in another order, sample i's at rows[i]
+        inv = np.argsort(perm)
+        assert np.array_equal(infer._accumulate(w, v[perm], ri, R, rows=inv), ref)
+        # samples not grouped by ray: each ray still sums in sample order
+        shuf = rng.permutation(S)
+        ref_u = accumulate_along_rays(torch.from_numpy(w[shuf]), torch.from_numpy(v[shuf]),
+                                      torch.from_numpy(ri[shuf]), R).numpy()
+        assert np.array_equal(infer._accumulate(w[shuf], v[shuf], ri[shuf], R), ref_u)
+    ref = accumulate_along_rays(torch.from_numpy(w), None, torch.from_numpy(ri), R).numpy()
+    assert np.array_equal(infer._accumulate(w, None, ri, R), ref.reshape(R, 1))
+    assert infer._accumulate(w[:0], v[:0], ri[:0], R).shape == (R, 31)
+    # the fallback of a device without scipy
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_scipy(name, *a, **k):
+        if name.startswith("scipy"):
+            raise ImportError(name)
+        return real_import(name, *a, **k)
+
+    monkeypatch.setattr(builtins, "__import__", no_scipy)
+    fb = infer._accumulate(w, v[perm], ri, R, rows=inv)
+    ref = accumulate_along_rays(torch.from_numpy(w), torch.from_numpy(v), torch.from_numpy(ri), R).numpy()
+    assert np.allclose(fb, ref, rtol=1e-5, atol=1e-5) and not np.array_equal(fb, ref)
+
+
+def test_rays_with_no_occupied_sample_render_the_background(bundle):
+    """A chunk of rays that meets no occupied cell (a view into empty space, the background rows of an object's
+    photo) renders the background at zero opacity; it raised a reshape error before 2026-12-08."""
+    m = infer.load_model(bundle["out"], threads=1)
+    R = 12
+    o = np.zeros((R, 3), np.float32)
+    d = np.tile(np.float32([0.0, 0.6, 0.8]), (R, 1))
+    near, far = np.full(R, 2.0, np.float32), np.full(R, 1.0, np.float32)  # every ray misses the box
+    r = infer.render_rays(m, o, d, near, far, np.ones(R, np.float32))
+    assert np.array_equal(r["opacity"], np.zeros(R, np.float32)) and not r["samples"].any()
+    assert np.allclose(r["rgb"], m.background_radiance(d), atol=1e-7)
+    assert all(v.shape[0] == R and np.isfinite(v).all() for v in r.values())
+
+
+def test_row_searchsorted_is_numpys_row_by_row():
+    rng = np.random.default_rng(5)
+    table = np.sort(rng.choice(np.float32([-2.5, -1e-30, -0.0, 0.0, 1e-30, 0.25, 0.5, 1.0, 7.0]), (50, 12)), -1)
+    table[3] = 0.0
+    rows = rng.integers(0, 50, 4000)
+    vals = rng.choice(np.float32([-3.0, -2.5, -1e-30, -0.0, 0.0, 1e-30, 1e-31, 0.3, 0.5, 1.0, 7.0, 9.0]), 4000)
+    want = np.array([np.searchsorted(table[r], v, side="right") for r, v in zip(rows, vals)])
+    assert np.array_equal(infer._row_searchsorted(table, rows, vals), want)
+
+
 def test_background_and_occupancy_match_torch(bundle):
     from toolkit.pipeline import Background
     from toolkit.train import load_run
