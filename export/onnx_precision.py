@@ -203,9 +203,6 @@ def make_int8_variant(src: Path, dst: Path, gather: bool = False) -> dict:
 
     model = _gemm_to_matmul(onnx.load(str(src)))
     ops = ["MatMul"] + (["Gather"] if gather else [])
-    # the hash grid sums its 8 corners with a MatMul (toolkit.encoding.hash_grid_encode_torch): an exact sum, not
-    # an MLP layer, so it stays float
-    keep_float = [n.name for n in model.graph.node if n.op_type == "MatMul" and "grid" in n.name.split("/")]
     import logging
 
     root = logging.getLogger()
@@ -220,9 +217,9 @@ def make_int8_variant(src: Path, dst: Path, gather: bool = False) -> dict:
             # (an AMD EPYC with AVX2 only, 2026-11-28) the variant fell to 34.8 dB against fp32 on the sample's
             # field. 7 bits cannot saturate; VNNI CPUs lose one bit of weight precision.
             quantize_dynamic(str(tmp), str(dst), weight_type=QuantType.QInt8, op_types_to_quantize=ops,
-                             per_channel=False, reduce_range=True, nodes_to_exclude=keep_float,
+                             per_channel=False, reduce_range=True,
                              extra_options={"MatMulConstBOnly": True})
         finally:
             root.setLevel(level)
     onnx.checker.check_model(onnx.load(str(dst)))
-    return {"quantised_ops": ops, "kept_float": keep_float}
+    return {"quantised_ops": ops}
