@@ -369,7 +369,8 @@ def _run_chunked(session, shapes: dict, inputs: dict[str, np.ndarray], sh: np.nd
         if bad:
             raise InferError(f"out {bad} must hold float32 arrays of {n} rows for every output")
     if n == 0:
-        return {k: np.zeros([0] + [int(d) for d in shapes[k][1:]], np.float32) for k in names}
+        return ({k: out[k] for k in names} if out is not None
+                else {k: np.zeros([0] + [int(d) for d in shapes[k][1:]], np.float32) for k in names})
     feed_sh = np.ascontiguousarray(sh, np.float32)
     if feed_sh.shape != (9, 3):
         raise InferError(f"sh must be [9, 3] (SPEC order, linear radiance), got {list(feed_sh.shape)}")
@@ -647,7 +648,7 @@ def _accumulate(weights: np.ndarray, values: np.ndarray | None, ray_indices: np.
 
     With scipy, one sparse product (rays × samples, the weights as its entries): float32 sums in sample order, as
     torch's ``index_add`` takes them in :func:`toolkit.render.accumulate_along_rays`, and no [S, C] temporary (a
-    feature has tens of channels; ~40× faster than the fallback on 64). Without scipy (``export.infer`` needs only
+    feature has tens of channels; 30-40× faster than the fallback on 31-64). Without scipy (``export.infer`` needs only
     numpy and onnxruntime), ``np.bincount`` channel by channel, in float64."""
     S = weights.shape[0]
     vals = (np.ones((S, 1), np.float32) if values is None
