@@ -128,7 +128,7 @@ def hash_grid_encode_torch(x: torch.Tensor, table: torch.Tensor, resolutions: to
     rows = torch.remainder(lin, table_size) + level_off  # [N, L, 8]
     # trilinear interpolation as three lerps, z (the outermost corner bit: corner k = x + 2 y + 4 z) first: 7 F
     # products a point and level against 8 + 8 F for the weights' outer product and the weighted sum, and fewer
-    # [N, L, 8, ...] tensors in ONNX Runtime (~10-20 % faster there than the weighted sum; bench/bench_onnx.py)
+    # [N, L, 8, ...] tensors in ONNX Runtime (field.onnx 1.1-1.25x the points a second; bench/bench_infer_ab.py)
     g = table[rows.reshape(-1)].reshape(x.shape[0], n_levels, 2, 4, feats)  # [N, L, z, (y, x), F]
     g0, g1 = g.unbind(2)
     g = (g0 + (g1 - g0) * f[:, :, 2, None, None]).reshape(x.shape[0], n_levels, 2, 2, feats)  # [N, L, y, x, F]
