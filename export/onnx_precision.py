@@ -217,8 +217,7 @@ def make_int8_variant(src: Path, dst: Path, gather: bool = False) -> dict:
             # (an AMD EPYC with AVX2 only, 2026-11-28) the variant fell to 34.8 dB against fp32 on the sample's
             # field. 7 bits cannot saturate; VNNI CPUs lose one bit of weight precision.
             quantize_dynamic(str(tmp), str(dst), weight_type=QuantType.QInt8, op_types_to_quantize=ops,
-                             per_channel=False, reduce_range=True,
-                             extra_options={"MatMulConstBOnly": True})
+                             per_channel=False, reduce_range=True, extra_options={"MatMulConstBOnly": True})
         finally:
             root.setLevel(level)
     onnx.checker.check_model(onnx.load(str(dst)))
