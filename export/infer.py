@@ -297,9 +297,8 @@ class FieldModel:
     def output_buffers(self, n: int, outputs: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         """Uninitialised float32 arrays [n, ...] for the field's ``outputs`` (default: all), for :meth:`query`'s
         ``out``."""
-        shapes = self.metadata["field"]["outputs"]
         names = [o.name for o in self.session.get_outputs()] if outputs is None else list(outputs)
-        return {k: np.empty([n] + [int(d) for d in shapes[k][1:]], np.float32) for k in names}
+        return _output_arrays(self.metadata["field"]["outputs"], names, n)
 
     def query_heads(self, features: np.ndarray, view_dirs: np.ndarray, sh: np.ndarray | None = None,
                     chunk: int = 65536) -> dict[str, np.ndarray]:
@@ -351,6 +350,12 @@ class FieldModel:
                 + flat[r1 * w + c0] * (fr * (1 - fc)) + flat[r1 * w + c1] * (fr * fc)).astype(np.float32)
 
 
+def _output_arrays(shapes: dict, names: Sequence[str], n: int) -> dict[str, np.ndarray]:
+    """Uninitialised float32 arrays [n, ...] for the outputs ``names`` of a graph whose output shapes (``N`` first,
+    from ``metadata.json``) are ``shapes``."""
+    return {k: np.empty([n] + [int(d) for d in shapes[k][1:]], np.float32) for k in names}
+
+
 def _run_chunked(session, shapes: dict, inputs: dict[str, np.ndarray], sh: np.ndarray, chunk: int,
                  outputs: Sequence[str] | None = None, out: dict[str, np.ndarray] | None = None
                  ) -> dict[str, np.ndarray]:
@@ -369,8 +374,7 @@ def _run_chunked(session, shapes: dict, inputs: dict[str, np.ndarray], sh: np.nd
         if bad:
             raise InferError(f"out {bad} must hold float32 arrays of {n} rows for every output")
     if n == 0:
-        return ({k: out[k] for k in names} if out is not None
-                else {k: np.zeros([0] + [int(d) for d in shapes[k][1:]], np.float32) for k in names})
+        return {k: out[k] for k in names} if out is not None else _output_arrays(shapes, names, 0)
     feed_sh = np.ascontiguousarray(sh, np.float32)
     if feed_sh.shape != (9, 3):
         raise InferError(f"sh must be [9, 3] (SPEC order, linear radiance), got {list(feed_sh.shape)}")
@@ -641,37 +645,52 @@ def render_weights(density: np.ndarray, deltas: np.ndarray, ray_indices: np.ndar
     return trans * alphas
 
 
-def _accumulate(weights: np.ndarray, values: np.ndarray | None, ray_indices: np.ndarray, n_rays: int,
-                rows: np.ndarray | None = None) -> np.ndarray:
-    """float32 [R, C] Σ w v per ray ([R, 1] for ``values=None``); ``values[rows[i]]`` is sample i's value when
-    ``rows`` is given (the samples' order in ``values``, which then need not be gathered into sample order).
+class _RaySums:
+    """Σ w v per ray over one chunk's packed samples, for as many per-sample values v as the render needs: they
+    share the weights and the rays, so the rays × samples matrix of the weights is built once.
 
-    With scipy, one sparse product (rays × samples, the weights as its entries): float32 sums in sample order, as
-    torch's ``index_add`` takes them in :func:`toolkit.render.accumulate_along_rays`, and no [S, C] temporary (a
-    feature has tens of channels; 30-40× faster than the fallback on 31-64). Without scipy (``export.infer`` needs only
-    numpy and onnxruntime), ``np.bincount`` channel by channel, in float64."""
-    S = weights.shape[0]
-    vals = (np.ones((S, 1), np.float32) if values is None
-            else values.reshape(values.shape[0], int(np.prod(values.shape[1:], dtype=np.int64))))
-    if values is None:
-        rows = None
-    C = vals.shape[1]
-    try:
-        from scipy.sparse import csr_matrix
-    except ImportError:
-        csr_matrix = None
-    if csr_matrix is not None and S > 0:
-        ri = np.asarray(ray_indices, np.int64)
-        order = np.arange(S) if bool((ri[1:] >= ri[:-1]).all()) else np.argsort(ri, kind="stable")
-        indptr = np.concatenate([[0], np.cumsum(np.bincount(ri, minlength=n_rays))])
-        cols = order if rows is None else np.asarray(rows, np.int64)[order]
-        mat = csr_matrix((np.asarray(weights, np.float32)[order], cols, indptr), shape=(n_rays, vals.shape[0]))
-        return np.asarray(mat @ np.asarray(vals, np.float32), np.float32).reshape(n_rays, C)
-    src = weights[:, None] * (vals if rows is None else vals[rows])
-    out = np.empty((n_rays, C), np.float32)
-    for c in range(C):
-        out[:, c] = np.bincount(ray_indices, weights=src[:, c], minlength=n_rays)
-    return out
+    ``rows`` (a permutation of the S samples): ``values[rows[i]]`` is sample i's value, the order the field queries
+    wrote the values in, which then need not be gathered into sample order. With scipy, one sparse product (CSR)
+    per value: float32 sums in sample order, as torch's ``index_add`` takes them in
+    :func:`toolkit.render.accumulate_along_rays` (bit for bit), and no [S, C] temporary (a feature has tens of
+    channels; 30-40× faster than the fallback on 31-64). Without scipy (``export.infer`` needs only numpy and
+    onnxruntime), ``np.bincount`` channel by channel, in float64.
+
+    Attributes:
+        counts: int64 [R] samples per ray.
+    """
+
+    def __init__(self, weights: np.ndarray, ray_indices: np.ndarray, n_rays: int, rows: np.ndarray | None = None):
+        self.weights = np.asarray(weights, np.float32)
+        self.ray_indices = np.asarray(ray_indices, np.int64)
+        self.n_rays, self.rows = n_rays, rows
+        self.counts = np.bincount(self.ray_indices, minlength=n_rays)
+        self.matrix = None
+        try:
+            from scipy.sparse import csr_matrix
+        except ImportError:
+            return
+        S = self.weights.shape[0]
+        if S > 0:
+            ri = self.ray_indices
+            order = np.arange(S) if bool((ri[1:] >= ri[:-1]).all()) else np.argsort(ri, kind="stable")
+            cols = order if rows is None else np.asarray(rows, np.int64)[order]
+            self.matrix = csr_matrix((self.weights[order], cols, np.concatenate([[0], np.cumsum(self.counts)])),
+                                     shape=(n_rays, S))
+
+    def __call__(self, values: np.ndarray | None = None) -> np.ndarray:
+        """float32 [R, C] Σ w v per ray of ``values`` [S, ...] (C: the product of its trailing sizes), or Σ w
+        ([R, 1]) for None."""
+        S = self.weights.shape[0]
+        vals = (np.ones((S, 1), np.float32) if values is None
+                else np.asarray(values, np.float32).reshape(S, int(np.prod(values.shape[1:], dtype=np.int64))))
+        if self.matrix is not None:
+            return np.asarray(self.matrix @ vals, np.float32).reshape(self.n_rays, vals.shape[1])
+        src = self.weights[:, None] * (vals if self.rows is None else vals[self.rows])
+        out = np.empty((self.n_rays, vals.shape[1]), np.float32)
+        for c in range(vals.shape[1]):
+            out[:, c] = np.bincount(self.ray_indices, weights=src[:, c], minlength=self.n_rays)
+        return out
 
 
 def _sort_keys(x: np.ndarray) -> np.ndarray:
@@ -803,42 +822,38 @@ def render_rays(model: FieldModel, origins: np.ndarray, directions: np.ndarray, 
         sample_delta = np.concatenate([t1c - t0c, edges[ray_f, k_f + 1] - edges[ray_f, k_f]]).astype(f32)
     s0, s1, ri, order = _merge(tmid_c, ray_c, t_f, ray_f, max_delta, near, far, sample_delta)
     weights = render_weights(outs["density"][order], s1 - s0, ri, R)
-    opacity = _accumulate(weights, None, ri, R)
+    sums = _RaySums(weights, ri, R, rows=order)  # of values in query order, as ``outs`` holds them
+    opacity = sums()
     safe = np.maximum(opacity, f32(1e-6))
-    tm = f32(0.5) * (s0 + s1)
-    depth = (_accumulate(weights, tm[:, None], ri, R)[:, 0] / safe[:, 0]) * z_scale
+    tm = np.empty_like(s0)
+    tm[order] = f32(0.5) * (s0 + s1)  # the samples' mid-points, in query order
+    depth = (sums(tm)[:, 0] / safe[:, 0]) * z_scale
     bg = model.background_radiance(directions)
     if per_ray:
-        return _shade_rays(model, outs["feature"], weights, ri, opacity, depth, directions, bg, sh, rows=order)
-
-    def acc(name):
-        return _accumulate(weights, outs[name], ri, R, rows=order)
-
-    res = {"rgb": acc("colour" if model.shading == "pbr" else "radiance") + (f32(1.0) - opacity) * bg,
+        return _shade_rays(model, sums, outs["feature"], opacity, depth, directions, bg, sh)
+    res = {"rgb": sums(outs["colour" if model.shading == "pbr" else "radiance"]) + (f32(1.0) - opacity) * bg,
            "depth": depth, "opacity": opacity[:, 0]}
-    nrm = acc("normal")
+    nrm = sums(outs["normal"])
     res["normal"] = nrm / np.maximum(np.sqrt((nrm * nrm).sum(-1, keepdims=True)), f32(1e-6))
-    res["semantic_logits"] = acc("semantic_logits") / safe  # as torch: Σ w l / Σ w
+    res["semantic_logits"] = sums(outs["semantic_logits"]) / safe  # as torch: Σ w l / Σ w
     if model.shading == "pbr":
-        res["albedo"] = acc("albedo") / safe
-        res["roughness"] = (acc("roughness") / safe)[:, 0]
-        res["metallic"] = (acc("metallic") / safe)[:, 0]
-        res["diffuse"] = acc("diffuse")
-        res["specular"] = acc("specular")
-    res["samples"] = np.bincount(ri, minlength=R).astype(np.float32)
+        res["albedo"] = sums(outs["albedo"]) / safe
+        res["roughness"] = (sums(outs["roughness"]) / safe)[:, 0]
+        res["metallic"] = (sums(outs["metallic"]) / safe)[:, 0]
+        res["diffuse"] = sums(outs["diffuse"])
+        res["specular"] = sums(outs["specular"])
+    res["samples"] = sums.counts.astype(np.float32)
     return {k: v.astype(np.float32, copy=False) for k, v in res.items()}
 
 
-def _shade_rays(model: FieldModel, features: np.ndarray, weights: np.ndarray, ri: np.ndarray, opacity: np.ndarray,
-                depth: np.ndarray, directions: np.ndarray, bg: np.ndarray, sh: np.ndarray | None,
-                rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def _shade_rays(model: FieldModel, sums: _RaySums, features: np.ndarray, opacity: np.ndarray, depth: np.ndarray,
+                directions: np.ndarray, bg: np.ndarray, sh: np.ndarray | None) -> dict[str, np.ndarray]:
     """The outputs of :func:`render_rays` for a run shaded once per ray (``deferred``), as
-    :func:`toolkit.pipeline.render_rays` computes them: the heads on h̄ = Σ w h / Σ w, rgb = opacity · colour +
-    (1 − opacity) · background, diffuse and specular premultiplied by opacity. ``features[rows[i]]`` is sample i's
-    (:func:`_accumulate`)."""
+    :func:`toolkit.pipeline.render_rays` computes them: the heads on h̄ = Σ w h / Σ w (``sums`` of the samples'
+    ``features``), rgb = opacity · colour + (1 − opacity) · background, diffuse and specular premultiplied by
+    opacity."""
     f32 = np.float32
-    R = directions.shape[0]
-    hbar = _accumulate(weights, features, ri, R, rows=rows) / np.maximum(opacity, f32(1e-6))
+    hbar = sums(features) / np.maximum(opacity, f32(1e-6))
     heads = model.query_heads(hbar, directions, sh)
     colour = heads["colour"] if model.shading == "pbr" else heads["radiance"]
     res = {"rgb": opacity * colour + (f32(1.0) - opacity) * bg, "depth": depth, "opacity": opacity[:, 0],
@@ -846,7 +861,7 @@ def _shade_rays(model: FieldModel, features: np.ndarray, weights: np.ndarray, ri
     if model.shading == "pbr":
         res.update(albedo=heads["albedo"], roughness=heads["roughness"], metallic=heads["metallic"],
                    diffuse=opacity * heads["diffuse"], specular=opacity * heads["specular"])
-    res["samples"] = np.bincount(ri, minlength=R).astype(np.float32)
+    res["samples"] = sums.counts.astype(np.float32)
     return {k: v.astype(np.float32, copy=False) for k, v in res.items()}
 
 

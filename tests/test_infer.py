@@ -210,6 +210,10 @@ def test_sampler_and_compositing_match_torch():
     assert np.allclose(s0, ps.t_starts.numpy(), atol=1e-6) and np.allclose(s1, ps.t_ends.numpy(), atol=1e-6)
 
 
+def _sums(weights, values, ray_indices, n_rays, rows=None):
+    return infer._RaySums(weights, ray_indices, n_rays, rows=rows)(values)
+
+
 def test_accumulation_is_torchs_bit_for_bit(monkeypatch):
     """Σ w v per ray: the same float32 sums in the same order as toolkit.render.accumulate_along_rays (index_add),
     with the values in query order (``rows``) and with samples out of ray order; without scipy, float64 bincounts
@@ -224,20 +228,20 @@ def test_accumulation_is_torchs_bit_for_bit(monkeypatch):
     for C in (1, 3, 31):
         v = rng.standard_normal((S, C)).astype(np.float32)
         ref = accumulate_along_rays(torch.from_numpy(w), torch.from_numpy(v), torch.from_numpy(ri), R).numpy()
-        got = infer._accumulate(w, v, ri, R)
+        got = _sums(w, v, ri, R)
         assert got.dtype == np.float32 and got.shape == (R, C) and np.array_equal(got, ref), C
         assert not got[7].any()
         perm = rng.permutation(S)  # values stored in another order, sample i's at rows[i]
         inv = np.argsort(perm)
-        assert np.array_equal(infer._accumulate(w, v[perm], ri, R, rows=inv), ref)
+        assert np.array_equal(_sums(w, v[perm], ri, R, rows=inv), ref)
         # samples not grouped by ray: each ray still sums in sample order
         shuf = rng.permutation(S)
         ref_u = accumulate_along_rays(torch.from_numpy(w[shuf]), torch.from_numpy(v[shuf]),
                                       torch.from_numpy(ri[shuf]), R).numpy()
-        assert np.array_equal(infer._accumulate(w[shuf], v[shuf], ri[shuf], R), ref_u)
+        assert np.array_equal(_sums(w[shuf], v[shuf], ri[shuf], R), ref_u)
     ref = accumulate_along_rays(torch.from_numpy(w), None, torch.from_numpy(ri), R).numpy()
-    assert np.array_equal(infer._accumulate(w, None, ri, R), ref.reshape(R, 1))
-    assert infer._accumulate(w[:0], v[:0], ri[:0], R).shape == (R, 31)
+    assert np.array_equal(_sums(w, None, ri, R), ref.reshape(R, 1))
+    assert _sums(w[:0], v[:0], ri[:0], R).shape == (R, 31)
     # the fallback of a device without scipy
     import builtins
 
@@ -249,7 +253,7 @@ def test_accumulation_is_torchs_bit_for_bit(monkeypatch):
         return real_import(name, *a, **k)
 
     monkeypatch.setattr(builtins, "__import__", no_scipy)
-    fb = infer._accumulate(w, v[perm], ri, R, rows=inv)
+    fb = _sums(w, v[perm], ri, R, rows=inv)
     ref = accumulate_along_rays(torch.from_numpy(w), torch.from_numpy(v), torch.from_numpy(ri), R).numpy()
     assert np.allclose(fb, ref, rtol=1e-5, atol=1e-5) and not np.array_equal(fb, ref)
 
