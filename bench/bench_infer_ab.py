@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
-import subprocess
 import sys
 import tempfile
 import time
@@ -35,19 +34,18 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
 
 def load_baseline_renderer(rev: str, workdir: Path):
-    """``export/infer.py`` at git revision ``rev``, imported as a module of its own (it needs numpy, onnxruntime
-    and ``toolkit.pinhole`` only)."""
-    try:
-        src = subprocess.run(["git", "show", f"{rev}:export/infer.py"], cwd=ROOT, check=True, capture_output=True,
-                             text=True).stdout
-    except subprocess.CalledProcessError as e:
-        raise SystemExit(f"--baseline {rev!r}: git show failed: {e.stderr.strip()}") from e
-    path = workdir / "infer_baseline.py"
-    path.write_text(src)
-    spec = importlib.util.spec_from_file_location("infer_baseline", path)
+    """``export/infer.py`` at git revision ``rev`` (extracted by :func:`bench_memory.baseline_code`), imported as a
+    module of its own (it needs numpy, onnxruntime and ``toolkit.pinhole`` only)."""
+    from bench_memory import baseline_code
+
+    code = baseline_code(rev, workdir)
+    if code is None:
+        raise SystemExit(f"--baseline {rev!r}: not a commit of this repository")
+    spec = importlib.util.spec_from_file_location("infer_baseline", code / "export" / "infer.py")
     mod = importlib.util.module_from_spec(spec)
     sys.modules["infer_baseline"] = mod  # its dataclasses look their module up there
     spec.loader.exec_module(mod)
